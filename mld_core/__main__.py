@@ -1,0 +1,3 @@
+from mld_core.cli import main
+
+raise SystemExit(main())

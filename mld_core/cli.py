@@ -1,0 +1,66 @@
+"""Command line: ``python -m mld_core <command> ...``.
+
+Each feature module contributes its own sub-commands through a ``register(groups)`` function, so the
+CLI stays a thin dispatcher. ``groups`` maps a group name to an argparse sub-parsers object:
+``"root"`` (top level: generate, evaluate, bench), ``"data"`` (data prepare ...), ``"train"``
+(train vae|denoiser|evaluator). A registered parser sets ``func=callable(args) -> int``.
+Errors meant for the user are raised as ``UsageError`` and printed without a traceback (exit 2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# Modules that contribute commands. A module listed here that is missing is skipped, so the CLI
+# keeps working while parts are being built.
+COMMAND_MODULES = (
+    "mld_core.data.cli",
+    "mld_core.training.cli",
+    "mld_core.generate",
+    "mld_core.eval.cli",
+    "mld_core.bench",
+)
+
+
+class UsageError(Exception):
+    """A problem with the user's input: printed as one message, exit code 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m mld_core", description=__doc__.splitlines()[0])
+    root = parser.add_subparsers(dest="command", metavar="COMMAND")
+    data = root.add_parser("data", help="prepare training folders").add_subparsers(dest="data_command", metavar="ACTION")
+    train = root.add_parser("train", help="train a model stage").add_subparsers(dest="train_command", metavar="STAGE")
+    groups = {"root": root, "data": data, "train": train}
+    for name in COMMAND_MODULES:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name == name:
+                continue
+            raise
+        module.register(groups)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    func = getattr(args, "func", None)
+    if func is None:
+        parser.print_help()
+        return 2
+    try:
+        return int(func(args) or 0)
+    except UsageError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,1 @@
+"""Training data: preparing folders (Bandai) and loading any HumanML3D-format folder."""

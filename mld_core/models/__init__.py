@@ -1,0 +1,1 @@
+"""Networks: motion VAE, latent denoiser, text encoders."""
