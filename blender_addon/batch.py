@@ -1,0 +1,330 @@
+"""Headless batch: prompts in, an animated .blend (one Action per prompt) and a JSON manifest out.
+
+Inside Blender::
+
+    blender -b [scene.blend] --python batch.py -- --prompts prompts.txt --out takes.blend \\
+        [--armature NAME] [--seconds S] [--seed N] [--bvh-dir DIR] [--preview takes.png] [--overwrite]
+
+With the bpy module from plain Python (the README's main command)::
+
+    python blender_addon/batch.py --prompt "a person walks forward and waves" --out out/take.blend \\
+        --preview out/take.png --overwrite
+
+A prompt file has one take per line: plain text, or MLD's ``<frames> <text>`` (frames at 20 fps); blank lines
+and ``#`` comments are skipped. Line i uses seed ``--seed + i``. Without ``--armature`` the canonical armature
+(with a simple body mesh) is created, or reused if the file has one. The first take is assigned to the
+armature; every take is an Action with a fake user. Outputs are written atomically (temporary file, then
+rename); existing outputs are refused without ``--overwrite``. Exit codes: 0 done, 1 failed while running,
+2 bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
+
+
+class BatchError(Exception):
+    """Bad input: printed as one line, exit code 2."""
+
+
+def _addon_package():
+    """This add-on's package, whether we run as a script (blender --python / python) or were imported."""
+    if __package__:
+        return importlib.import_module(__package__)
+    here = Path(__file__).resolve().parent
+    parent = str(here.parent)
+    if parent not in sys.path:
+        sys.path.insert(0, parent)
+    return importlib.import_module(here.name)
+
+
+def script_argv(argv=None) -> list[str]:
+    """Our arguments: after ``--`` when Blender runs the script, else everything after the script name."""
+    argv = list(sys.argv if argv is None else argv)
+    if "--" in argv:
+        return argv[argv.index("--") + 1 :]
+    return argv[1:]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="batch.py",
+        description="Generate takes from text prompts into an animated .blend (MLD text-to-motion).",
+    )
+    src = parser.add_mutually_exclusive_group(required=True)
+    src.add_argument("--prompts", metavar="FILE", help="prompt file: one take per line, '<frames> <text>' allowed")
+    src.add_argument("--prompt", metavar="TEXT", action="append", help="a prompt (repeat for several takes)")
+    parser.add_argument("--out", required=True, metavar="OUT.blend", help="the .blend to write")
+    parser.add_argument("--armature", metavar="NAME", help="armature object to key (default: the canonical one)")
+    parser.add_argument("--seconds", type=float, default=4.0, help="length of lines without a frame count (4)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the first take; take i uses seed+i (0)")
+    parser.add_argument("--steps", type=int, default=50, help="diffusion steps (50)")
+    parser.add_argument("--guidance", type=float, default=None, help="guidance scale (default: the model's)")
+    parser.add_argument("--model", metavar="DIR", help="model folder (default: the bundled model)")
+    parser.add_argument("--device", default="cpu", help="cpu, cuda, mps or auto (cpu)")
+    parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
+    parser.add_argument("--fps", type=float, default=None, help="scene frame rate (default: the file's, or 20 for a new scene)")
+    parser.add_argument("--bvh-dir", metavar="DIR", help="also write each take as a BVH file here")
+    parser.add_argument("--preview", metavar="PNG", help="render a strip of frames of the first take")
+    parser.add_argument("--manifest", metavar="JSON", help="manifest path (default: OUT with .json)")
+    parser.add_argument("--no-exact", action="store_true", help="key rotations (+ root) only, not bone offsets")
+    parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    return parser
+
+
+def output_paths(args, takes_names=()) -> dict:
+    out = Path(args.out)
+    paths = {"blend": out, "manifest": Path(args.manifest) if args.manifest else out.with_suffix(".json")}
+    if args.preview:
+        paths["preview"] = Path(args.preview)
+    return paths
+
+
+def check_outputs(paths: dict, overwrite: bool) -> None:
+    if not str(paths["blend"]).endswith(".blend"):
+        raise BatchError(f"--out must name a .blend file, got {paths['blend']}")
+    for kind, path in paths.items():
+        if path.exists() and not overwrite:
+            raise BatchError(f"{path} exists; pass --overwrite to replace it")
+        if path.exists() and path.is_dir():
+            raise BatchError(f"{path} is a folder")
+
+
+def _atomic_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)  # mkstemp makes 0600 files
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def save_blend_atomic(path: Path) -> None:
+    """Save a copy of the session to ``path`` via a temporary file in the same folder."""
+    import bpy
+
+    path = Path(path).resolve()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".blend")
+    os.close(fd)
+    try:
+        result = bpy.ops.wm.save_as_mainfile(filepath=tmp, copy=True, check_existing=False)
+        if "FINISHED" not in result:
+            raise RuntimeError(f"Blender could not save {tmp}")
+        os.replace(tmp, path)
+    finally:
+        for leftover in (tmp, tmp + "1"):
+            if os.path.exists(leftover):
+                os.unlink(leftover)
+
+
+def write_bvh(path: Path, take) -> None:
+    """One take as BVH on the canonical skeleton, in centimetres (mld_core's writer renames atomically)."""
+    import numpy as np
+    from mld_core.motion import bvh, skeleton
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    bvh.write_bvh(
+        path,
+        list(skeleton.JOINT_NAMES),
+        list(skeleton.PARENTS),
+        np.asarray(getattr(skeleton, "REST_OFFSETS", skeleton.REFERENCE_OFFSETS)) * 100.0,
+        np.asarray(take.root_positions) * 100.0,
+        np.asarray(take.local_quats),
+        1.0 / take.fps,
+    )
+
+
+def _prepare_scene(args, addon):
+    """The scene and the armature to key (creating the canonical one if needed)."""
+    import bpy
+
+    if not bpy.data.filepath:
+        # no .blend given: start from an empty scene rather than the default cube
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        bpy.context.scene.render.fps = 20
+        bpy.context.scene.render.fps_base = 1.0
+    scene = bpy.context.scene
+    if args.fps:
+        fps = float(args.fps)
+        if not 1 <= fps <= 1000:
+            raise BatchError(f"--fps must be between 1 and 1000, got {fps:g}")
+        scene.render.fps, scene.render.fps_base = max(1, round(fps)), round(fps) / fps if fps else 1.0
+    rig = importlib.import_module(addon.__name__ + ".rig")
+    apply = importlib.import_module(addon.__name__ + ".apply")
+    if args.armature:
+        obj = bpy.data.objects.get(args.armature)
+        if obj is None:
+            names = [o.name for o in bpy.data.objects if o.type == "ARMATURE"]
+            raise BatchError(f"no object named {args.armature!r}; armatures here: {', '.join(names) or 'none'}")
+        problem = apply.check_target(obj)
+        if problem:
+            raise BatchError(problem)
+        return scene, obj
+    obj = bpy.data.objects.get(rig.CANONICAL_NAME)
+    if obj is not None and rig.is_canonical(obj):
+        return scene, obj
+    return scene, rig.create_canonical_armature(bpy.context, body=True)
+
+
+def run(args) -> int:
+    addon = _addon_package()
+    from_pkg = lambda name: importlib.import_module(f"{addon.__name__}.{name}")  # noqa: E731
+    batchfile, validation, env = from_pkg("batchfile"), from_pkg("validation"), from_pkg("env")
+
+    t_start = time.perf_counter()
+    # 1. Inputs, all checked before any work.
+    if args.prompts:
+        lines = batchfile.read_prompt_file(args.prompts)
+    else:
+        lines = batchfile.parse_prompt_lines("\n".join(p.replace("\n", " ") for p in args.prompt), source="--prompt")
+    model_dir = args.model or env.model_dir_override()
+    if model_dir and not Path(model_dir).is_dir():
+        raise BatchError(f"model folder not found: {model_dir}")
+    requests = batchfile.requests_from_lines(
+        lines,
+        default_seconds=args.seconds,
+        seed=args.seed,
+        steps=args.steps,
+        guidance=args.guidance,
+        variants=1,
+        model_dir=model_dir,
+        device=args.device,
+        threads=args.threads,
+    )
+    paths = output_paths(args)
+    check_outputs(paths, args.overwrite)
+    bvh_dir = Path(args.bvh_dir) if args.bvh_dir else None
+    if bvh_dir is not None and bvh_dir.exists() and not bvh_dir.is_dir():
+        raise BatchError(f"--bvh-dir {bvh_dir} is not a folder")
+    missing = env.missing_modules()
+    if missing:
+        raise BatchError(env.dependency_message(missing))
+
+    # 2. Scene and armature.
+    scene, obj = _prepare_scene(args, addon)
+
+    # 3. Model (once), then one take per line.
+    model_cache, generation, apply = from_pkg("model_cache"), from_pkg("generation"), from_pkg("apply")
+    cache = model_cache.PipelineCache()
+    t0 = time.perf_counter()
+    pipe = cache.get(model_dir, args.device, args.threads)
+    load_s = time.perf_counter() - t0
+    print(f"model {getattr(pipe, 'model_id', '?')} loaded in {load_s:.2f} s")
+    min_s, max_s = getattr(pipe, "min_seconds", None), getattr(pipe, "max_seconds", None)
+    records = []
+    first_frames = 0
+    for index, (line, request) in enumerate(zip(lines, requests)):
+        if min_s is not None and not (min_s - 1e-6 <= request.seconds <= max_s + 1e-6):
+            raise BatchError(f"line {line.line}: this model makes {min_s:g} to {max_s:g} s, got {request.seconds:g}")
+        t0 = time.perf_counter()
+        result = generation.generate(pipe, request)
+        report = apply.apply_result(obj, result, scene, exact=not args.no_exact, assign=index == 0)
+        take = result.takes[0]
+        take.name = report.actions[0]
+        record = take.summary()
+        record.update(
+            line=line.line,
+            scene_frames=report.frames,
+            scene_fps=report.fps,
+            time_s=round(time.perf_counter() - t0, 4),
+            key_s=round(report.key_seconds, 4),
+        )
+        if bvh_dir is not None:
+            bvh_path = bvh_dir / f"{take.name}.bvh"
+            if bvh_path.exists() and not args.overwrite:
+                raise BatchError(f"{bvh_path} exists; pass --overwrite to replace it")
+            write_bvh(bvh_path, take)
+            record["bvh"] = str(bvh_path)
+        records.append(record)
+        if index == 0:
+            first_frames = report.frames
+        print(f"[{index + 1}/{len(requests)}] {take.name}: {take.frames} frames ({request.seconds:g} s) in {record['time_s']:.2f} s")
+    scene.frame_end = scene.frame_start + max(first_frames, 1) - 1
+
+    # 4. Outputs: the .blend, the manifest, the preview.
+    save_blend_atomic(paths["blend"])
+    manifest = {
+        "format": "mld-takes",
+        "version": 1,
+        "blend": str(paths["blend"]),
+        "armature": obj.name,
+        "model_id": getattr(pipe, "model_id", ""),
+        "model_dir": model_dir or "",
+        "addon_version": env.ADDON_VERSION_STRING,
+        "settings": {
+            "seconds": args.seconds,
+            "seed": args.seed,
+            "steps": args.steps,
+            "guidance": args.guidance,
+            "device": args.device,
+            "exact": not args.no_exact,
+            "scene_fps": apply.scene_fps(scene),
+            "frame_start": scene.frame_start,
+        },
+        "timing": {"load_s": round(load_s, 4), "total_s": round(time.perf_counter() - t_start, 4)},
+        "takes": records,
+    }
+    if "preview" in paths:
+        preview = from_pkg("preview")
+        t0 = time.perf_counter()
+        preview.render_preview(scene, obj, paths["preview"])
+        manifest["preview"] = str(paths["preview"])
+        manifest["timing"]["preview_s"] = round(time.perf_counter() - t0, 4)
+        print(f"preview {paths['preview']} in {manifest['timing']['preview_s']:.2f} s")
+    manifest["timing"]["total_s"] = round(time.perf_counter() - t_start, 4)
+    _atomic_text(paths["manifest"], json.dumps(manifest, indent=2) + "\n")
+    print(f"wrote {paths['blend']} ({len(records)} take{'s' if len(records) != 1 else ''}) and {paths['manifest']}")
+    return EXIT_OK
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    try:
+        args = parser.parse_args(script_argv(argv))
+    except SystemExit as exc:  # argparse already printed the problem
+        return EXIT_USAGE if exc.code else EXIT_OK
+    addon = _addon_package()
+    user_errors = (BatchError, importlib.import_module(addon.__name__ + ".batchfile").BatchFileError)
+    try:
+        return run(args)
+    except user_errors as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - one readable line; the traceback only with MLD_DEBUG=1
+        jobs = importlib.import_module(addon.__name__ + ".jobs")
+        if os.environ.get("MLD_DEBUG"):
+            import traceback
+
+            traceback.print_exc()
+        print(f"error: {jobs.user_message(exc)}", file=sys.stderr)
+        return EXIT_FAILED
+
+
+if __name__ == "__main__":
+    code = main()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    if code:
+        # Under `blender -b --python` a SystemExit would only end the script; os._exit ends Blender with the code.
+        if "bpy" in sys.modules and getattr(sys.modules["bpy"].app, "binary_path", "") and "--" in sys.argv:
+            os._exit(code)
+        raise SystemExit(code)

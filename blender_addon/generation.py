@@ -1,0 +1,162 @@
+"""One generation request -> takes ready to key (bpy-free; runs on the worker thread).
+
+:func:`generate` calls the pipeline and turns each generated row into a :class:`Take`: the joints, the local
+rotations of the canonical skeleton (``mld_core.motion.rotations.features_to_rotations``), the provenance
+that lets anyone regenerate it exactly, and its Action name. :func:`make_work` wraps it for the
+:class:`jobs.JobRunner` together with the model cache.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+
+import numpy as np
+
+from .env import ADDON_VERSION_STRING
+from .naming import action_name
+from .validation import GenerateRequest
+
+PROVENANCE_PREFIX = "mld_"
+
+
+@dataclass
+class Take:
+    prompt: str
+    seed: int  # the seed this take was sampled with (request seed + variant)
+    variant: int  # 0-based
+    request: GenerateRequest
+    joints: np.ndarray  # (T, 22, 3) metres, model axes (Y up, facing +Z)
+    local_quats: np.ndarray  # (T, 22, 4) w-first, canonical skeleton, model axes
+    root_positions: np.ndarray  # (T, 3)
+    fps: int
+    model_id: str
+    guidance: float | None  # the guidance scale actually used
+    steps: int
+    seconds_generated: float  # wall time of the whole request (shared by its variants)
+    name: str = ""
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def frames(self) -> int:
+        return int(self.joints.shape[0])
+
+    def provenance(self) -> dict:
+        """Custom properties for the Action: everything needed to regenerate this take exactly."""
+        data = {
+            "prompt": self.prompt,
+            "seed": int(self.seed),
+            "request_seed": int(self.request.seed),
+            "variant": int(self.variant),
+            "variants": int(self.request.variants),
+            "steps": int(self.steps),
+            "guidance": float(self.guidance) if self.guidance is not None else -1.0,
+            "seconds": float(self.request.seconds),
+            "frames": self.frames,
+            "fps": int(self.fps),
+            "model_id": self.model_id or "",
+            "model_dir": self.request.model_dir or "",
+            "addon_version": ADDON_VERSION_STRING,
+            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        }
+        return {PROVENANCE_PREFIX + k: v for k, v in data.items()}
+
+    def summary(self) -> dict:
+        """A JSON-able record (batch manifests)."""
+        prov = {k.removeprefix(PROVENANCE_PREFIX): v for k, v in self.provenance().items()}
+        prov["name"] = self.name
+        prov["generate_s"] = round(self.seconds_generated, 4)
+        return prov
+
+
+@dataclass
+class GenerationResult:
+    takes: list
+    request: GenerateRequest
+    load_s: float = 0.0
+    generate_s: float = 0.0
+    pose_s: float = 0.0
+
+    @property
+    def total_s(self) -> float:
+        return self.load_s + self.generate_s + self.pose_s
+
+
+def rotations_from_features(features: np.ndarray):
+    """(local quaternions (T, 22, 4), root positions (T, 3)) of the canonical skeleton."""
+    from mld_core.motion.rotations import features_to_rotations
+
+    quats, root = features_to_rotations(np.asarray(features, np.float32))
+    return np.asarray(quats, np.float64), np.asarray(root, np.float64)
+
+
+def generate(pipe, request: GenerateRequest, callback=None, check_cancel=None) -> GenerationResult:
+    """Run ``pipe`` for one request; one :class:`Take` per variant (in order)."""
+    start = time.perf_counter()
+    guidance = request.guidance
+    out = pipe(
+        [request.prompt],
+        seconds=request.seconds,
+        num_inference_steps=request.steps,
+        guidance_scale=guidance,
+        seed=request.seed,
+        num_variants=request.variants,
+        callback=callback,
+    )
+    generated = time.perf_counter() - start
+    if check_cancel is not None:
+        check_cancel()
+    used_guidance = guidance
+    if used_guidance is None:
+        used_guidance = getattr(getattr(pipe, "config", None), "guidance_scale", None)
+    fps = int(getattr(out, "fps", 20) or 20)
+    model_id = getattr(out, "model_id", "") or getattr(pipe, "model_id", "") or ""
+    t0 = time.perf_counter()
+    takes = []
+    for row in range(len(out.seeds)):
+        n = int(out.lengths[row])
+        joints = np.asarray(out.joints[row, :n], np.float64)
+        quats, root = rotations_from_features(out.features[row, :n])
+        if quats.shape[0] != n:
+            raise RuntimeError(f"rotations have {quats.shape[0]} frames for {n} generated frames")
+        take = Take(
+            prompt=request.prompt,
+            seed=int(out.seeds[row]),
+            variant=row % request.variants,
+            request=request,
+            joints=joints,
+            local_quats=quats,
+            root_positions=root,
+            fps=fps,
+            model_id=model_id,
+            guidance=used_guidance,
+            steps=request.steps,
+            seconds_generated=generated,
+            timings=dict(getattr(out, "timings", {}) or {}),
+        )
+        take.name = action_name(request.prompt, request.seed, take.variant, request.variants)
+        takes.append(take)
+    return GenerationResult(takes, request, generate_s=generated, pose_s=time.perf_counter() - t0)
+
+
+def make_work(cache):
+    """The job runner's work function: load (cached) -> generate with progress + cancel -> takes."""
+
+    def work(job):
+        request: GenerateRequest = job.request
+        job.stage = "loading model"
+        loads_before = cache.loads
+        pipe = cache.get(request.model_dir, request.device, request.threads)
+        load_s = cache.load_seconds if cache.loads != loads_before else 0.0
+        job.check_cancel()
+        min_s, max_s = getattr(pipe, "min_seconds", None), getattr(pipe, "max_seconds", None)
+        if min_s is not None and max_s is not None and not (min_s - 1e-6 <= request.seconds <= max_s + 1e-6):
+            raise ValueError(f"This model makes {min_s:g} to {max_s:g} seconds of motion; got {request.seconds:g}")
+        job.stage = "denoising"
+        result = generate(pipe, request, callback=job.step, check_cancel=job.check_cancel)
+        result.load_s = load_s
+        job.stage = "posing"
+        return result
+
+    return work

@@ -1,0 +1,134 @@
+"""Writing keyframes in bulk (bpy; main thread only).
+
+Works with slotted Actions (Blender 4.4+, the only kind in 5.0: ``Action.fcurves`` is gone there) and with
+the older flat Actions of 4.2/4.3. Every F-curve gets its keys with one ``keyframe_points.add`` and one
+``foreach_set("co", ...)``; interpolation is set in bulk too.
+
+The previous Action of the armature is never lost: it gets a fake user before the new one is assigned (it
+stays in the file and in the Action browser). Generated Actions have a fake user too, so variants that are
+not assigned survive saving.
+"""
+
+from __future__ import annotations
+
+import bpy
+import numpy as np
+
+from .posing import BoneChannels
+
+_INTERPOLATION = {"CONSTANT": 0, "LINEAR": 1, "BEZIER": 2}
+
+
+def slotted_actions() -> bool:
+    """True where Actions have slots and layers (Blender 4.4+)."""
+    return hasattr(bpy.types.Action, "bl_rna") and "slots" in bpy.types.Action.bl_rna.properties
+
+
+class ChannelWriter:
+    """Creates F-curves (grouped per bone) on an Action for one object, either API."""
+
+    def __init__(self, action, obj):
+        self.action = action
+        self.obj = obj
+        self.slot = None
+        self._groups = {}
+        if slotted_actions():
+            self.slot = action.slots.new(id_type="OBJECT", name=obj.name)
+            layer = action.layers.new("Layer")
+            strip = layer.strips.new(type="KEYFRAME")
+            self._bag = strip.channelbag(self.slot, ensure=True)
+        else:  # Blender 4.2 / 4.3
+            self._bag = None
+
+    def fcurve(self, data_path: str, index: int, group: str):
+        if self._bag is not None:
+            fc = self._bag.fcurves.new(data_path, index=index)
+            grp = self._groups.get(group)
+            if grp is None:
+                grp = self._groups[group] = self._bag.groups.new(group)
+            fc.group = grp
+            return fc
+        return self.action.fcurves.new(data_path, index=index, action_group=group)
+
+    def assign(self) -> None:
+        ad = self.obj.animation_data or self.obj.animation_data_create()
+        ad.action = self.action
+        if self.slot is not None:
+            ad.action_slot = self.slot
+
+
+def fcurves_of(action, obj=None) -> list:
+    """All F-curves of an Action (either API)."""
+    if not slotted_actions():
+        return list(action.fcurves)
+    curves = []
+    for layer in action.layers:
+        for strip in layer.strips:
+            for slot in action.slots:
+                bag = strip.channelbag(slot)
+                if bag is not None:
+                    curves.extend(bag.fcurves)
+    return curves
+
+
+def write_keys(fc, frames: np.ndarray, values: np.ndarray, interpolation: str = "LINEAR") -> None:
+    """Replace nothing, add ``len(frames)`` keys to an empty F-curve in bulk."""
+    n = len(frames)
+    co = np.empty((n, 2), np.float32)  # (n, [frame, value])
+    co[:, 0] = frames
+    co[:, 1] = values
+    points = fc.keyframe_points
+    points.add(n)
+    points.foreach_set("co", co.ravel())
+    points.foreach_set("interpolation", np.full(n, _INTERPOLATION[interpolation], np.int32))
+    fc.update()
+
+
+def keep_previous_action(obj) -> object | None:
+    """Give the armature's current Action a fake user so replacing it loses nothing; returns it."""
+    ad = obj.animation_data
+    previous = ad.action if ad is not None else None
+    if previous is not None and not previous.use_fake_user:
+        previous.use_fake_user = True
+    return previous
+
+
+def channels_to_action(
+    obj,
+    channels: BoneChannels,
+    name: str,
+    *,
+    frame_start: int = 1,
+    assign: bool = True,
+    properties: dict | None = None,
+    interpolation: str = "LINEAR",
+):
+    """A new Action holding ``channels`` for armature ``obj`` (keys from ``frame_start``), assigned if asked.
+
+    Pose bones keyed here are switched to quaternion rotation. Returns the Action.
+    """
+    pose_bones = obj.pose.bones
+    missing = [n for n in channels.names if n not in pose_bones]
+    if missing:
+        raise ValueError(f"armature {obj.name!r} has no bones named {', '.join(missing)}")
+    action = bpy.data.actions.new(name)
+    action.use_fake_user = True
+    for key, value in (properties or {}).items():
+        action[key] = value
+    writer = ChannelWriter(action, obj)
+    frames = frame_start + np.arange(channels.frames, dtype=np.float64)
+    keyed_loc = set(channels.keyed_locations)
+    for j, bone in enumerate(channels.names):
+        pose_bones[bone].rotation_mode = "QUATERNION"
+        base = f'pose.bones["{bone}"]'
+        if j in keyed_loc:
+            for i in range(3):
+                write_keys(writer.fcurve(base + ".location", i, bone), frames, channels.locations[:, j, i], interpolation)
+        for i in range(4):
+            write_keys(
+                writer.fcurve(base + ".rotation_quaternion", i, bone), frames, channels.quaternions[:, j, i], interpolation
+            )
+    if assign:
+        keep_previous_action(obj)
+        writer.assign()
+    return action

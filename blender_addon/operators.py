@@ -1,0 +1,254 @@
+"""Operators: thin adapters from the UI to plain functions (bpy).
+
+``do_generate(obj, request, ...)`` is the plain function; ``MLD_OT_generate`` only reads the context into
+its arguments. Interactive runs go to the worker thread and return at once (the timer in ``runtime`` keys
+the result); in background mode (``blender -b``, the bpy module) or with ``wait=True`` the operator runs the
+job to the end itself, so scripts and tests get the keys when the call returns, as one undo step.
+"""
+
+from __future__ import annotations
+
+import random
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, StringProperty
+
+from . import env, runtime
+from .apply import check_target
+from .validation import RequestError, validate_request
+
+
+# -- plain functions ------------------------------------------------------------------------------------------
+def resolve_target(context):
+    """The armature to key: the panel's choice, else the active object if it is an armature."""
+    settings = context.scene.mld_motion
+    if settings.target is not None:
+        return settings.target
+    obj = context.view_layer.objects.active if context.view_layer else None
+    return obj if obj is not None and obj.type == "ARMATURE" else None
+
+
+def request_from_settings(settings, prefs):
+    """A validated request from the panel settings and the preferences (raises RequestError)."""
+    return validate_request(
+        settings.prompt,
+        settings.seconds,
+        settings.seed,
+        settings.steps,
+        settings.guidance,
+        settings.variants,
+        model_dir=(prefs.model_dir if prefs is not None else "") or env.model_dir_override(),
+        device=prefs.device if prefs is not None else "cpu",
+        threads=prefs.threads if prefs is not None else 0,
+    )
+
+
+def do_generate(obj, scene, request, *, exact=True, set_frame_range=True, wait=False):
+    """Generate for ``obj``: wait=True runs to the end and returns (level, message); otherwise submits the
+    job and returns ("INFO", message) at once."""
+    target = runtime.Target(obj.name, getattr(obj, "session_uid", None), scene.name, exact, set_frame_range)
+    if wait:
+        job = runtime.runner().run_now(request)
+        return runtime.finish_job(job, target)
+    runtime.submit(request, target)
+    runtime.record_outcome(scene, message="Generating ...")
+    return "INFO", f"Generating {request.seconds:g} s of '{request.prompt}'"
+
+
+def generate_problem(context) -> str:
+    """'' when Generate can run, else why not (shown as the disabled button's tooltip)."""
+    missing = env.missing_modules()
+    if missing:
+        return env.dependency_message(missing)
+    if runtime.busy():
+        return "A generation is running: wait for it or press Cancel"
+    settings = getattr(context.scene, "mld_motion", None)
+    if settings is None:
+        return "The add-on is not registered for this scene"
+    if not settings.prompt.strip():
+        return "Type a prompt first"
+    problem = check_target(resolve_target(context))
+    return problem
+
+
+# -- operators ------------------------------------------------------------------------------------------------
+class MLD_OT_generate(bpy.types.Operator):
+    """Generate motion from the prompt and key it onto the armature as a new Action"""
+
+    bl_idname = "mld.generate"
+    bl_label = "Generate Motion"
+    bl_options = {"REGISTER", "UNDO"}
+
+    wait: BoolProperty(
+        name="Wait",
+        description="Run to the end before returning (always so in background mode)",
+        default=False,
+        options={"SKIP_SAVE", "HIDDEN"},
+    )
+
+    @classmethod
+    def poll(cls, context):
+        problem = generate_problem(context)
+        if problem:
+            cls.poll_message_set(problem)
+            return False
+        return True
+
+    def execute(self, context):
+        from .preferences import get_prefs
+
+        settings = context.scene.mld_motion
+        obj = resolve_target(context)
+        try:
+            request = request_from_settings(settings, get_prefs(context))
+        except RequestError as exc:
+            runtime.record_outcome(context.scene, error=str(exc))
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        wait = self.wait or bpy.app.background
+        level, message = do_generate(
+            obj, context.scene, request, exact=settings.exact, set_frame_range=settings.set_frame_range, wait=wait
+        )
+        self.report({level}, message)
+        runtime.tag_redraw()
+        return {"FINISHED"} if level == "INFO" else {"CANCELLED"}
+
+
+class MLD_OT_cancel(bpy.types.Operator):
+    """Stop the running generation (within one diffusion step)"""
+
+    bl_idname = "mld.cancel"
+    bl_label = "Cancel"
+    bl_options = {"REGISTER"}
+
+    @classmethod
+    def poll(cls, context):
+        if not runtime.busy():
+            cls.poll_message_set("Nothing is running")
+            return False
+        return True
+
+    def execute(self, context):
+        runtime.runner().cancel_all()
+        self.report({"INFO"}, "Cancelling ...")
+        return {"FINISHED"}
+
+
+class MLD_OT_randomize_seed(bpy.types.Operator):
+    """Pick a new random seed"""
+
+    bl_idname = "mld.randomize_seed"
+    bl_label = "Random Seed"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        context.scene.mld_motion.seed = random.randint(0, 999_999)
+        return {"FINISHED"}
+
+
+class MLD_OT_create_armature(bpy.types.Operator):
+    """Create the model's own 22-bone armature (with a simple body mesh) and make it the target"""
+
+    bl_idname = "mld.create_armature"
+    bl_label = "Create Canonical Armature"
+    bl_options = {"REGISTER", "UNDO"}
+
+    body: BoolProperty(name="Body Mesh", description="Add a simple mesh bound to the bones", default=True)
+
+    @classmethod
+    def poll(cls, context):
+        if env.mld_core_location() is None:
+            cls.poll_message_set("mld_core is missing from the add-on (a broken install?)")
+            return False
+        if context.mode not in {"OBJECT", "POSE"}:
+            cls.poll_message_set("Switch to Object Mode first")
+            return False
+        return True
+
+    def execute(self, context):
+        from .rig import create_canonical_armature
+
+        obj = create_canonical_armature(context, location=tuple(context.scene.cursor.location), body=self.body)
+        context.scene.mld_motion.target = obj
+        self.report({"INFO"}, f"Created {obj.name}")
+        return {"FINISHED"}
+
+
+class MLD_OT_install_dependencies(bpy.types.Operator):
+    """Download and install PyTorch (CPU), safetensors and tqdm for Blender's Python into the add-on's user folder"""
+
+    bl_idname = "mld.install_dependencies"
+    bl_label = "Install Dependencies"
+    bl_options = {"REGISTER"}
+
+    @classmethod
+    def poll(cls, context):
+        if runtime.installer().running:
+            cls.poll_message_set("An installation is running")
+            return False
+        if env.user_site_dir() is None:
+            cls.poll_message_set("No user folder for the add-on")
+            return False
+        return True
+
+    def invoke(self, context, event):
+        return context.window_manager.invoke_confirm(self, event)
+
+    def execute(self, context):
+        from .installer import install_commands
+
+        target = env.user_site_dir()
+        target.mkdir(parents=True, exist_ok=True)
+
+        def done(installer):
+            env.add_user_site_packages(target)
+
+        runtime.installer().start(install_commands(target), on_done=done)
+        bpy.app.timers.register(_redraw_while_installing, first_interval=0.5)
+        self.report({"INFO"}, f"Installing into {target} (see the system console)")
+        return {"FINISHED"}
+
+
+def _redraw_while_installing():
+    runtime.tag_redraw()
+    return 0.5 if runtime.installer().running else None
+
+
+class MLD_OT_report(bpy.types.Operator):
+    """Show a message from a finished background job"""
+
+    bl_idname = "mld.report"
+    bl_label = "Motion Report"
+    bl_options = {"INTERNAL"}
+
+    level: EnumProperty(items=[(x, x, "") for x in ("INFO", "WARNING", "ERROR")], default="INFO")
+    message: StringProperty(default="")
+
+    def invoke(self, context, event):
+        self.report({self.level}, self.message)
+        return {"FINISHED"}
+
+    def execute(self, context):
+        self.report({self.level}, self.message)
+        return {"FINISHED"}
+
+
+classes = (
+    MLD_OT_generate,
+    MLD_OT_cancel,
+    MLD_OT_randomize_seed,
+    MLD_OT_create_armature,
+    MLD_OT_install_dependencies,
+    MLD_OT_report,
+)
+
+
+def register():
+    for cls in classes:
+        bpy.utils.register_class(cls)
+
+
+def unregister():
+    runtime.shutdown()
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)

@@ -1,0 +1,110 @@
+"""The sidebar panel: View3D > Sidebar > Motion (bpy)."""
+
+from __future__ import annotations
+
+import bpy
+
+from . import env, runtime
+from .operators import resolve_target
+
+
+class MLD_PT_generate(bpy.types.Panel):
+    bl_label = "Text to Motion"
+    bl_idname = "MLD_PT_generate"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "Motion"
+
+    def draw(self, context):
+        layout = self.layout
+        settings = getattr(context.scene, "mld_motion", None)
+        if settings is None:
+            layout.label(text="Not registered for this scene", icon="ERROR")
+            return
+
+        missing = env.missing_modules()
+        if missing:
+            box = layout.box()
+            box.alert = True
+            box.label(text="PyTorch is needed: " + ", ".join(missing) + " missing", icon="ERROR")
+            col = box.column(align=True)
+            col.label(text="Install it for Blender's Python:")
+            col.operator("mld.install_dependencies", icon="IMPORT")
+            col.label(text="(or Preferences > Add-ons > MLD Text to Motion)")
+
+        layout.prop(settings, "prompt", text="")
+        col = layout.column(align=True)
+        row = col.row(align=True)
+        row.prop(settings, "seconds")
+        row.prop(settings, "variants")
+        row = col.row(align=True)
+        row.prop(settings, "seed")
+        row.operator("mld.randomize_seed", text="", icon="FILE_REFRESH")
+        row = col.row(align=True)
+        row.prop(settings, "steps")
+        row.prop(settings, "guidance")
+
+        target = resolve_target(context)
+        layout.prop(settings, "target", icon="ARMATURE_DATA")
+        if settings.target is None:
+            if target is not None:
+                layout.label(text=f"Using the active armature {target.name}", icon="INFO")
+            else:
+                box = layout.box()
+                box.label(text="No armature selected", icon="INFO")
+                box.operator("mld.create_armature", icon="OUTLINER_OB_ARMATURE")
+        row = layout.row(align=True)
+        row.prop(settings, "exact", toggle=True)
+        row.prop(settings, "set_frame_range", toggle=True)
+
+        job = runtime.current_job()
+        if job is not None:
+            row = layout.row(align=True)
+            label = f"{job.stage.capitalize()} {job.step_done}/{job.step_total}" if job.step_total else job.stage.capitalize()
+            if hasattr(row, "progress"):
+                row.progress(factor=job.progress, type="BAR", text=label)
+            else:  # before Blender 4.0
+                row.label(text=f"{label} ({job.progress:.0%})")
+            row.operator("mld.cancel", text="", icon="CANCEL")
+        else:
+            layout.operator("mld.generate", icon="PLAY")
+
+        if settings.last_error:
+            box = layout.box()
+            box.alert = True
+            for index, line in enumerate(_wrap(settings.last_error, 48)):
+                box.label(text=line, icon="ERROR" if index == 0 else "BLANK1")
+        elif settings.last_message:
+            box = layout.box()
+            if settings.last_frames:
+                box.label(text=f"{settings.last_frames} frames in {settings.last_seconds:.2f} s", icon="CHECKMARK")
+                for name in settings.last_actions.split(", "):
+                    box.label(text=name, icon="ACTION")
+            else:
+                box.label(text=settings.last_message, icon="INFO")
+
+
+def _wrap(text: str, width: int) -> list[str]:
+    words, lines, line = text.split(), [], ""
+    for word in words:
+        if line and len(line) + 1 + len(word) > width:
+            lines.append(line)
+            line = word
+        else:
+            line = f"{line} {word}" if line else word
+    if line:
+        lines.append(line)
+    return lines[:6] or [""]
+
+
+classes = (MLD_PT_generate,)
+
+
+def register():
+    for cls in classes:
+        bpy.utils.register_class(cls)
+
+
+def unregister():
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)

@@ -1,0 +1,84 @@
+"""Per-scene settings of the panel: ``scene.mld_motion`` (bpy)."""
+
+from __future__ import annotations
+
+import bpy
+from bpy.props import BoolProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+
+from .validation import DEFAULT_MAX_SECONDS, DEFAULT_MIN_SECONDS, MAX_STEPS, MAX_VARIANTS, SEED_MAX
+
+
+def _is_armature(self, obj):
+    return obj.type == "ARMATURE"
+
+
+class MLD_SceneSettings(bpy.types.PropertyGroup):
+    prompt: StringProperty(
+        name="Prompt",
+        description="What the character does, in plain English (e.g. 'a person walks forward and waves')",
+        default="a person walks forward and waves with the right hand",
+    )
+    seconds: FloatProperty(
+        name="Seconds",
+        description="Length of the motion (the model makes 1 to 9.8 seconds at 20 fps)",
+        default=4.0,
+        min=DEFAULT_MIN_SECONDS,
+        max=DEFAULT_MAX_SECONDS,
+        step=50,
+        precision=2,
+        unit="TIME_ABSOLUTE",
+    )
+    seed: IntProperty(name="Seed", description="Same seed + same settings = same motion", default=0, min=0, max=SEED_MAX)
+    guidance: FloatProperty(
+        name="Guidance",
+        description="How strongly the prompt steers the motion (0: the model's default, about 4)",
+        default=0.0,
+        min=0.0,
+        max=30.0,
+        precision=1,
+    )
+    steps: IntProperty(name="Steps", description="Diffusion steps (more: slower, finer)", default=50, min=1, max=MAX_STEPS)
+    variants: IntProperty(
+        name="Variants",
+        description="How many different takes to make (seeds seed, seed+1, ...): each becomes its own Action",
+        default=1,
+        min=1,
+        max=MAX_VARIANTS,
+    )
+    target: PointerProperty(
+        name="Armature",
+        description="The armature that gets the keys (empty: the active armature)",
+        type=bpy.types.Object,
+        poll=_is_armature,
+    )
+    exact: BoolProperty(
+        name="Match Joints Exactly",
+        description="Also key bone locations so every joint lands exactly on the generated position",
+        default=True,
+    )
+    set_frame_range: BoolProperty(
+        name="Set Frame Range",
+        description="Set the scene's end frame to the end of the generated motion",
+        default=True,
+    )
+    # the last outcome (shown in the panel)
+    last_message: StringProperty(name="Last Result", default="")
+    last_error: StringProperty(name="Last Error", default="")
+    last_seconds: FloatProperty(name="Time Taken", default=0.0)
+    last_frames: IntProperty(name="Frames", default=0)
+    last_actions: StringProperty(name="Actions", default="")
+
+
+classes = (MLD_SceneSettings,)
+
+
+def register():
+    for cls in classes:
+        bpy.utils.register_class(cls)
+    bpy.types.Scene.mld_motion = PointerProperty(type=MLD_SceneSettings)
+
+
+def unregister():
+    del bpy.types.Scene.mld_motion
+    for cls in reversed(classes):
+        bpy.utils.unregister_class(cls)

@@ -1,0 +1,984 @@
+"""Retarget canonical 22-joint motion onto any humanoid armature (numpy only, no bpy).
+
+The source is a take of joint positions ``(T, 22, 3)`` in metres, Y up, facing +Z at frame 0 (the layout of
+``mld_core.motion.skeleton``). The target is an armature's rest pose as plain arrays (:class:`RigRest`, read from
+Blender by :mod:`blender_addon.rig_io` or loaded from a fixture). A bone map says which bone plays which canonical
+joint: the bone whose head sits at that joint (``left_hip`` -> the thigh bone, ``left_knee`` -> the shin bone, ...).
+
+How each mapped bone is posed (every frame, parents before children):
+
+* Its *segment* runs from its head to the head of the next mapped bone down the canonical chain (pelvis -> spine1
+  -> ... -> head, hip -> knee -> ankle -> foot, collar -> shoulder -> elbow -> wrist). Bones in between that are not
+  mapped stay at rest relative to their parent and are carried along rigidly.
+* The segment's direction is matched *absolutely*: the posed target segment points where the source segment points.
+  Rest poses therefore do not matter (T-pose, A-pose, or a degenerate BVH rest with every bone along one axis).
+* Swing: the minimal rotation from where the bone's rest segment points once carried by its posed parent to the
+  source direction, so a bone has no twist relative to its parent unless a twist reference says otherwise.
+* Twist about the segment, from a reference computed the same way on the source joints and on the rig's rest joints:
+  the hips' lateral axis for the pelvis, a blend of hip and shoulder lateral axes along the spine, the torso's up
+  axis for the collars, and the elbow / knee hinge axis for the upper arm / thigh (the hinge is known only when the
+  limb is bent; a straight limb keeps the twist it had, so it never snaps). Forearm, shin and foot get swing only,
+  which makes elbows and knees pure hinges once the parent's twist is right.
+* Bones with no mapped segment end (head, hands, toes) keep their rest rotation relative to their parent.
+* The pelvis bone gets a location: the source is converted to Blender's Z up (facing -Y), scaled by the ratio of
+  the rig's leg length to the source's (a hip-height ratio that also works for rigs whose rest pose is not standing),
+  recentred on the armature object's origin, and the pelvis is placed so that the midpoint of the rig's hips lands
+  on the scaled source hips' midpoint.
+
+Pose-bone conventions follow Blender: ``pose = parent_pose @ parent_rest^-1 @ rest @ T(location) @ R(quaternion)``
+with rest matrices ``bone.matrix_local`` in armature space and quaternions ``(w, x, y, z)``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field, replace
+from typing import Mapping
+
+import numpy as np
+
+from mld_core.motion import skeleton as _sk
+
+JOINT_NAMES: tuple[str, ...] = tuple(_sk.JOINT_NAMES)
+JOINT_INDEX = {name: i for i, name in enumerate(JOINT_NAMES)}
+
+# The next joint down the canonical chain that a joint's bone points at (leaves: head, feet, wrists).
+CHAIN_CHILD = {
+    "pelvis": "spine1", "spine1": "spine2", "spine2": "spine3", "spine3": "neck", "neck": "head",
+    "left_hip": "left_knee", "left_knee": "left_ankle", "left_ankle": "left_foot",
+    "right_hip": "right_knee", "right_knee": "right_ankle", "right_ankle": "right_foot",
+    "left_collar": "left_shoulder", "left_shoulder": "left_elbow", "left_elbow": "left_wrist",
+    "right_collar": "right_shoulder", "right_shoulder": "right_elbow", "right_elbow": "right_wrist",
+}
+
+# Joints every bone map must cover: enough to pose the legs, arms and head and to find the body's axes.
+REQUIRED_JOINTS = (
+    "pelvis", "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
+    "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist", "head",
+)
+
+# Y-up source (x, y, z) -> Blender Z-up (x, -z, y): +Z facing becomes -Y facing, left stays +X.
+Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+_EPS = 1e-9
+
+
+class RetargetError(ValueError):
+    """The rig or the bone map cannot be retargeted onto (the message says why)."""
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Small rotation helpers (matrices act on column vectors; quaternions are (w, x, y, z)).
+
+
+def normalize(v: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / np.maximum(n, _EPS)
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """(..., 4) quaternions (normalised here, as Blender does) -> (..., 3, 3)."""
+    q = normalize(np.asarray(q, dtype=np.float64))
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    m = np.empty(q.shape[:-1] + (3, 3))
+    m[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    m[..., 0, 1] = 2 * (x * y - w * z)
+    m[..., 0, 2] = 2 * (x * z + w * y)
+    m[..., 1, 0] = 2 * (x * y + w * z)
+    m[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    m[..., 1, 2] = 2 * (y * z - w * x)
+    m[..., 2, 0] = 2 * (x * z - w * y)
+    m[..., 2, 1] = 2 * (y * z + w * x)
+    m[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return m
+
+
+def matrix_to_quat(m: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotation matrices -> (..., 4) unit quaternions with w >= 0."""
+    m = np.asarray(m, dtype=np.float64)
+    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
+    # Four candidate |components|, pick the largest for numerical stability (Shepperd's method).
+    cand = np.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1)
+    best = np.argmax(cand, axis=-1)
+    s = np.sqrt(np.maximum(np.take_along_axis(cand, best[..., None], -1)[..., 0], _EPS)) * 2  # 4 * |component|
+    q = np.empty(m.shape[:-2] + (4,))
+    r21, r12 = m[..., 2, 1], m[..., 1, 2]
+    r02, r20 = m[..., 0, 2], m[..., 2, 0]
+    r10, r01 = m[..., 1, 0], m[..., 0, 1]
+    sel = [best == i for i in range(4)]
+    q[..., 0] = np.select(sel, [s / 4, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s])
+    q[..., 1] = np.select(sel, [(r21 - r12) / s, s / 4, (r01 + r10) / s, (r02 + r20) / s])
+    q[..., 2] = np.select(sel, [(r02 - r20) / s, (r01 + r10) / s, s / 4, (r12 + r21) / s])
+    q[..., 3] = np.select(sel, [(r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, s / 4])
+    q = normalize(q)
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def axis_angle_matrix(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Rotation by ``angle`` (...) radians about unit ``axis`` (..., 3) -> (..., 3, 3) (Rodrigues)."""
+    axis = normalize(axis)
+    angle = np.asarray(angle, dtype=np.float64)
+    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
+    c, s = np.cos(angle), np.sin(angle)
+    t = 1 - c
+    m = np.empty(axis.shape[:-1] + (3, 3))
+    m[..., 0, 0] = c + x * x * t
+    m[..., 0, 1] = x * y * t - z * s
+    m[..., 0, 2] = x * z * t + y * s
+    m[..., 1, 0] = y * x * t + z * s
+    m[..., 1, 1] = c + y * y * t
+    m[..., 1, 2] = y * z * t - x * s
+    m[..., 2, 0] = z * x * t - y * s
+    m[..., 2, 1] = z * y * t + x * s
+    m[..., 2, 2] = c + z * z * t
+    return m
+
+
+def any_perpendicular(v: np.ndarray) -> np.ndarray:
+    """A unit vector perpendicular to each unit ``v`` (..., 3)."""
+    v = normalize(v)
+    helper = np.where(np.abs(v[..., :1]) < 0.9, np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
+    return normalize(np.cross(v, helper))
+
+
+def rotation_between(a: np.ndarray, b: np.ndarray, fallback_axis: np.ndarray | None = None) -> np.ndarray:
+    """Minimal rotation (..., 3, 3) taking unit vectors ``a`` onto ``b``.
+
+    Opposite vectors have no unique minimal rotation: they turn by 180 degrees about ``fallback_axis``
+    (made perpendicular to ``a``) or about an arbitrary perpendicular.
+    """
+    a = normalize(a)
+    b = normalize(b)
+    a, b = np.broadcast_arrays(a, b)
+    axis = np.cross(a, b)
+    sin = np.linalg.norm(axis, axis=-1)
+    cos = np.sum(a * b, axis=-1)
+    angle = np.arctan2(sin, cos)
+    opposite = (sin < 1e-8) & (cos < 0)
+    if np.any(opposite):
+        perp = any_perpendicular(a)
+        if fallback_axis is not None:
+            f = np.broadcast_to(fallback_axis, a.shape)
+            f = f - np.sum(f * a, -1, keepdims=True) * a
+            ok = np.linalg.norm(f, axis=-1, keepdims=True) > 1e-6
+            perp = np.where(ok, normalize(f), perp)
+        axis = np.where(opposite[..., None], perp, axis)
+    axis = np.where((sin < 1e-12)[..., None] & ~opposite[..., None], np.array([1.0, 0.0, 0.0]), axis)
+    return axis_angle_matrix(axis, angle)
+
+
+def signed_angle(u: np.ndarray, v: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """Angle (radians, (-pi, pi]) turning ``u`` onto ``v`` about ``axis`` (all (..., 3))."""
+    return np.arctan2(np.sum(axis * np.cross(u, v), -1), np.sum(u * v, -1))
+
+
+def wrap_angle(a: np.ndarray | float) -> np.ndarray:
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3 - 2 * x)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The target rig's rest pose.
+
+
+@dataclass
+class RigRest:
+    """An armature's rest pose as arrays (what Blender's ``bone.matrix_local`` holds, in armature space).
+
+    names: bone names; parents: (B,) index of each bone's parent, -1 for roots (parents come before children is
+    not required); matrices: (B, 4, 4) rest matrices, columns = the bone's X, Y (head -> tail), Z axes and head;
+    tails: (B, 3); object_matrix: (4, 4) the armature object's world matrix (rotation, uniform scale, location)
+    when the rest was read; use_connect / use_local_location: per-bone flags (informative).
+    """
+
+    names: list[str]
+    parents: np.ndarray
+    matrices: np.ndarray
+    tails: np.ndarray
+    object_matrix: np.ndarray = field(default_factory=lambda: np.eye(4))
+    use_connect: np.ndarray | None = None
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        self.names = [str(n) for n in self.names]
+        self.parents = np.asarray(self.parents, dtype=np.int64).reshape(-1)
+        self.matrices = np.asarray(self.matrices, dtype=np.float64).reshape(-1, 4, 4)
+        self.tails = np.asarray(self.tails, dtype=np.float64).reshape(-1, 3)
+        self.object_matrix = np.asarray(self.object_matrix, dtype=np.float64).reshape(4, 4)
+        n = len(self.names)
+        if not (len(self.parents) == len(self.matrices) == len(self.tails) == n):
+            raise RetargetError("rig arrays disagree in length (names, parents, matrices, tails)")
+        if len(set(self.names)) != n:
+            raise RetargetError("rig has duplicate bone names")
+        if np.any(self.parents >= n) or np.any(self.parents < -1):
+            raise RetargetError("rig parent index out of range")
+        if self.use_connect is not None:
+            self.use_connect = np.asarray(self.use_connect, dtype=bool).reshape(-1)
+        self._index = {nm: i for i, nm in enumerate(self.names)}
+        self.order = _topological_order(self.parents)
+
+    @property
+    def heads(self) -> np.ndarray:
+        return self.matrices[:, :3, 3]
+
+    def index(self, name: str) -> int:
+        try:
+            return self._index[name]
+        except KeyError:
+            raise RetargetError(f"the armature has no bone named {name!r}") from None
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._index
+
+    def parent_name(self, name: str) -> str | None:
+        p = self.parents[self.index(name)]
+        return None if p < 0 else self.names[p]
+
+    def ancestors(self, i: int) -> list[int]:
+        out = []
+        p = self.parents[i]
+        while p >= 0:
+            out.append(int(p))
+            p = self.parents[p]
+        return out
+
+    def world_scale(self) -> float:
+        """Uniform scale of the object matrix (world units per armature unit)."""
+        return float(np.cbrt(abs(np.linalg.det(self.object_matrix[:3, :3]))))
+
+    def with_parents(self, overrides: Mapping[str, str]) -> "RigRest":
+        """A copy in which some bones follow another bone than their real parent.
+
+        For control rigs whose controls hang off helper bones driven by constraints (Rigify's FK controls), the
+        bone that a control effectively moves with is not its parent in the hierarchy.
+        """
+        if not overrides:
+            return self
+        parents = self.parents.copy()
+        for child, parent in overrides.items():
+            if child in self and parent in self:
+                parents[self.index(child)] = self.index(parent)
+        return replace(self, parents=parents)
+
+    # --- (de)serialisation, for fixtures and caching --------------------------------------------------------
+
+    def to_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "names": list(self.names),
+            "parents": [int(p) for p in self.parents],
+            "matrices": np.round(self.matrices[:, :3, :], 6).tolist(),
+            "tails": np.round(self.tails, 6).tolist(),
+            "object_matrix": np.round(self.object_matrix, 6).tolist(),
+            "use_connect": None if self.use_connect is None else [bool(c) for c in self.use_connect],
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> "RigRest":
+        m34 = np.asarray(d["matrices"], dtype=np.float64).reshape(-1, 3, 4)
+        mats = np.zeros((len(m34), 4, 4))
+        mats[:, :3, :] = m34
+        mats[:, 3, 3] = 1.0
+        # Re-orthonormalise the rotation part that was rounded for storage.
+        u, _, vt = np.linalg.svd(mats[:, :3, :3])
+        mats[:, :3, :3] = u @ vt
+        return cls(
+            names=list(d["names"]),
+            parents=d["parents"],
+            matrices=mats,
+            tails=d["tails"],
+            object_matrix=d.get("object_matrix", np.eye(4).tolist()),
+            use_connect=d.get("use_connect"),
+            name=d.get("name", ""),
+        )
+
+    def save(self, path: str | os.PathLike) -> None:
+        tmp = f"{os.fspath(path)}.tmp"
+        with open(tmp, "w", encoding="utf-8") as fh:
+            json.dump(self.to_dict(), fh, separators=(",", ":"))
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "RigRest":
+        with open(path, encoding="utf-8") as fh:
+            return cls.from_dict(json.load(fh))
+
+
+def _topological_order(parents: np.ndarray) -> list[int]:
+    n = len(parents)
+    depth = np.full(n, -1)
+    for i in range(n):
+        chain = []
+        j = i
+        while j >= 0 and depth[j] < 0:
+            chain.append(j)
+            if len(chain) > n:
+                raise RetargetError("rig hierarchy has a cycle")
+            j = parents[j]
+        d = depth[j] if j >= 0 else -1
+        for k in reversed(chain):
+            d += 1
+            depth[k] = d
+    return [int(i) for i in np.argsort(depth, kind="stable")]
+
+
+def rig_from_heads(
+    names: list[str],
+    parents: list[int],
+    heads: np.ndarray,
+    tails: np.ndarray,
+    *,
+    rolls: np.ndarray | None = None,
+    object_matrix: np.ndarray | None = None,
+    name: str = "",
+) -> RigRest:
+    """Build a :class:`RigRest` from bone heads, tails and rolls (radians) the way Blender's edit bones do."""
+    heads = np.asarray(heads, dtype=np.float64)
+    tails = np.asarray(tails, dtype=np.float64)
+    rolls = np.zeros(len(names)) if rolls is None else np.asarray(rolls, dtype=np.float64)
+    mats = np.tile(np.eye(4), (len(names), 1, 1))
+    for i in range(len(names)):
+        mats[i, :3, :3] = bone_rest_matrix(tails[i] - heads[i], rolls[i])
+        mats[i, :3, 3] = heads[i]
+    return RigRest(
+        names=names, parents=parents, matrices=mats, tails=tails,
+        object_matrix=np.eye(4) if object_matrix is None else object_matrix, name=name,
+    )
+
+
+def bone_rest_matrix(vector: np.ndarray, roll: float = 0.0) -> np.ndarray:
+    """Blender's ``vec_roll_to_mat3``: the rest rotation of a bone pointing along ``vector`` with ``roll``."""
+    y = normalize(np.asarray(vector, dtype=np.float64))
+    # Minimal rotation from +Y onto the bone's direction (Blender's special case for -Y: a half turn about Z).
+    if y[1] < -1 + 1e-6:
+        base = np.diag([-1.0, -1.0, 1.0])
+    else:
+        base = rotation_between(np.array([0.0, 1.0, 0.0]), y)
+    return base @ axis_angle_matrix(np.array([0.0, 1.0, 0.0]), roll)
+
+
+def canonical_rig(offsets: np.ndarray | None = None, *, leaf_length: float = 0.08) -> RigRest:
+    """The canonical armature: one bone per joint of ``mld_core.motion.skeleton``, named after the joint.
+
+    Each bone's head is its joint (the reference skeleton, Z up, facing -Y); its tail is the head of its chain child
+    (a short stub along the parent's direction for head, wrists and feet); rolls are 0. Bones are connected where
+    the tail of the parent is the head of the child.
+    """
+    if offsets is None:  # the rest pose the motion's rotations refer to, where the skeleton module defines one
+        offsets = getattr(_sk, "REST_OFFSETS", _sk.REFERENCE_OFFSETS)
+    offsets = np.asarray(offsets, dtype=np.float64)
+    n = len(JOINT_NAMES)
+    pos = np.zeros((n, 3))
+    for j in range(n):
+        p = _sk.PARENTS[j]
+        pos[j] = offsets[j] if p < 0 else pos[p] + offsets[j]
+    pos = pos @ Y_UP_TO_Z_UP.T
+    # Stand on the floor: ankles and toes (level in the reference skeleton) 5 cm above it.
+    pos[:, 2] -= pos[:, 2].min() - 0.05
+    heads = pos
+    tails = np.zeros_like(heads)
+    for j, name in enumerate(JOINT_NAMES):
+        child = CHAIN_CHILD.get(name)
+        if child is not None:
+            tails[j] = heads[JOINT_INDEX[child]]
+        else:
+            p = _sk.PARENTS[j]
+            direction = normalize(heads[j] - heads[p])
+            if name == "head":
+                direction = np.array([0.0, 0.0, 1.0])
+            tails[j] = heads[j] + leaf_length * direction
+        if np.linalg.norm(tails[j] - heads[j]) < 1e-4:  # zero-length bone (e.g. pelvis -> spine1 overlap)
+            tails[j] = heads[j] + np.array([0.0, 0.0, leaf_length])
+    return rig_from_heads(list(JOINT_NAMES), list(_sk.PARENTS), heads, tails, name="canonical")
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Forward kinematics on the target rig (Blender's pose-bone convention).
+
+
+def fk(
+    rig: RigRest,
+    rotations: np.ndarray | None = None,
+    locations: np.ndarray | None = None,
+) -> np.ndarray:
+    """Posed armature-space matrices (T, B, 4, 4) from local quaternions (T, B, 4) and locations (T, B, 3).
+
+    ``pose[b] = pose[parent] @ rest[parent]^-1 @ rest[b] @ T(location[b]) @ R(rotation[b])``; roots use
+    ``rest[b] @ T @ R``. ``None`` means rest (identity / zero) for every bone.
+    """
+    if rotations is None and locations is None:
+        rotations = np.tile(np.array([1.0, 0.0, 0.0, 0.0]), (1, len(rig.names), 1))
+    T = (rotations if rotations is not None else locations).shape[0]
+    B = len(rig.names)
+    local = np.tile(np.eye(4), (T, B, 1, 1))
+    if rotations is not None:
+        local[:, :, :3, :3] = quat_to_matrix(rotations)
+    if locations is not None:
+        local[:, :, :3, 3] = locations
+    rest = rig.matrices
+    rest_inv = np.linalg.inv(rest)
+    pose = np.empty((T, B, 4, 4))
+    for b in rig.order:
+        p = rig.parents[b]
+        if p < 0:
+            pose[:, b] = rest[b] @ local[:, b]
+        else:
+            pose[:, b] = pose[:, p] @ (rest_inv[p] @ rest[b]) @ local[:, b]
+    return pose
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Retargeting.
+
+
+@dataclass
+class RetargetOptions:
+    """How the take is placed on the rig.
+
+    yaw_deg: extra turn about world Z (0: the take faces -Y at its first frame, Blender's front view).
+    recenter: start the take over the armature object's origin (else keep the source's absolute ground position).
+    scale: world units per source metre; None: the rig's leg length over the source's (thigh + shin).
+    twist: use twist references (hinges, lateral axes); False gives swing-only rotations.
+    match: "effectors" (default) keeps hands, feet and head where the source puts them relative to the limb's
+        root, the source limb scaled to the rig's limb length: arms and legs are solved as two-bone chains in the
+        source's bend plane, the spine aims each bone at the scaled source's next joint. "directions" turns every
+        segment exactly along the source's (effectors then drift by the difference in proportions).
+    floor: for rigs whose rest pose stands, shift the take vertically so the source's standing ankle height (its
+        5th percentile over the take) becomes the rig's rest ankle height.
+    """
+
+    yaw_deg: float = 0.0
+    recenter: bool = True
+    scale: float | None = None
+    twist: bool = True
+    match: str = "effectors"
+    floor: bool = True
+
+
+@dataclass
+class RetargetResult:
+    """Pose-bone keys for the mapped bones, at the source's frame rate.
+
+    bones: mapped bone names (parents before children); joints: the canonical joint of each;
+    rotations: (T, K, 4) pose-bone quaternions (w, x, y, z), sign-continuous over time;
+    root_bone / root_location: the pelvis bone and its pose-bone location (T, 3) in its local rest space
+    (armature units); scale: world units per source metre; source_world: (T, 22, 3) the placed source joints in
+    world space (Z up, scaled) that the rig follows; rig: the rest used (with any parent overrides).
+    """
+
+    bones: list[str]
+    joints: list[str]
+    rotations: np.ndarray
+    root_bone: str
+    root_location: np.ndarray
+    scale: float
+    fps: float
+    source_world: np.ndarray
+    rig: RigRest
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.rotations.shape[0])
+
+    def full_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """(T, B, 4) rotations and (T, B, 3) locations over all bones of the rig (rest for unmapped bones)."""
+        T, B = self.num_frames, len(self.rig.names)
+        rot = np.tile(np.array([1.0, 0.0, 0.0, 0.0]), (T, B, 1))
+        loc = np.zeros((T, B, 3))
+        for k, name in enumerate(self.bones):
+            rot[:, self.rig.index(name)] = self.rotations[:, k]
+        loc[:, self.rig.index(self.root_bone)] = self.root_location
+        return rot, loc
+
+    def world_joints(self) -> dict[str, np.ndarray]:
+        """World-space (T, 3) head position of every mapped bone after FK, keyed by canonical joint."""
+        rot, loc = self.full_pose()
+        pose = fk(self.rig, rot, loc)
+        heads = _to_world(self.rig, pose[:, :, :3, 3])
+        return {j: heads[:, self.rig.index(b)] for j, b in zip(self.joints, self.bones)}
+
+
+def _to_world(rig: RigRest, points: np.ndarray) -> np.ndarray:
+    m = rig.object_matrix
+    return points @ m[:3, :3].T + m[:3, 3]
+
+
+def _to_armature(rig: RigRest, points: np.ndarray) -> np.ndarray:
+    inv = np.linalg.inv(rig.object_matrix)
+    return points @ inv[:3, :3].T + inv[:3, 3]
+
+
+def check_joints(joints: np.ndarray) -> np.ndarray:
+    joints = np.asarray(joints, dtype=np.float64)
+    if joints.ndim != 3 or joints.shape[1:] != (len(JOINT_NAMES), 3):
+        raise RetargetError(f"source joints must have shape (T, {len(JOINT_NAMES)}, 3), got {joints.shape}")
+    if joints.shape[0] < 1:
+        raise RetargetError("source take has no frames")
+    if not np.all(np.isfinite(joints)):
+        raise RetargetError("source joints contain NaN or infinite values")
+    return joints
+
+
+def leg_length(points: Mapping[str, np.ndarray]) -> np.ndarray:
+    """Mean of the two legs' thigh + shin lengths, from joint positions (..., 3)."""
+    total = 0.0
+    for side in ("left", "right"):
+        hip, knee, ankle = points[f"{side}_hip"], points[f"{side}_knee"], points[f"{side}_ankle"]
+        total = total + np.linalg.norm(knee - hip, axis=-1) + np.linalg.norm(ankle - knee, axis=-1)
+    return total / 2
+
+
+def place_source(
+    joints: np.ndarray, rig: RigRest, bone_map: Mapping[str, str], options: RetargetOptions | None = None
+) -> tuple[np.ndarray, float]:
+    """Source joints (T, 22, 3) Y-up metres -> world space (Z up, facing -Y, scaled, over the rig's origin)."""
+    options = options or RetargetOptions()
+    joints = check_joints(joints)
+    src = joints @ Y_UP_TO_Z_UP.T  # (T, 22, 3) Z up
+    yaw = math.radians(options.yaw_deg)
+    if yaw:
+        src = src @ axis_angle_matrix(np.array([0.0, 0.0, 1.0]), yaw).T
+    if options.scale is not None:
+        scale = float(options.scale)
+    else:
+        src_len = float(np.median(leg_length({n: src[:, JOINT_INDEX[n]] for n in JOINT_NAMES})))
+        world_heads = _to_world(rig, rig.heads)
+        tgt_len = float(leg_length({j: world_heads[rig.index(b)] for j, b in bone_map.items()}))
+        if src_len < 1e-6 or tgt_len < 1e-9:
+            raise RetargetError("cannot measure leg length (zero-length thigh or shin) to scale the take")
+        scale = tgt_len / src_len
+    ground = np.zeros(3)
+    if options.recenter:
+        ground[:2] = src[0, JOINT_INDEX["pelvis"], :2]
+    origin = rig.object_matrix[:3, 3]
+    world = (src - ground) * scale + origin
+    standing = standing_heights(rig, bone_map)
+    if standing is not None and options.floor:
+        # Lift or lower the take so the source's feet stand as high above the floor as the rig's feet do at rest
+        # (ankle joints sit at different heights above the sole on different skeletons).
+        ankles = world[:, [JOINT_INDEX["left_ankle"], JOINT_INDEX["right_ankle"]], 2] - origin[2]
+        src_stand = float(np.percentile(ankles, 5))
+        rig_stand = (standing["left_ankle"] + standing["right_ankle"]) / 2
+        world[..., 2] += rig_stand - src_stand
+        # Toes likewise, each on its own (the foot then pitches so the toe joint keeps its height above the floor).
+        for toe in ("left_foot", "right_foot"):
+            if toe in standing:
+                src_toe = float(np.percentile(world[:, JOINT_INDEX[toe], 2] - origin[2], 5))
+                world[:, JOINT_INDEX[toe], 2] += standing[toe] - src_toe
+    return world, scale
+
+
+def standing_heights(rig: RigRest, bone_map: Mapping[str, str]) -> dict[str, float] | None:
+    """Height above the floor of each mapped foot joint (ankles, toes) in the rig's rest pose, in world units, if
+    the rest pose stands (thighs and shins pointing down); None otherwise (e.g. a BVH rest along one axis).
+
+    The floor is the armature object's origin, or the lowest foot joint if that is lower.
+    """
+    heads = _to_world(rig, rig.heads)
+    p = {j: heads[rig.index(b)] for j, b in bone_map.items()}
+    for side in ("left", "right"):
+        for a, b in ((f"{side}_hip", f"{side}_knee"), (f"{side}_knee", f"{side}_ankle")):
+            if a not in p or b not in p or normalize(p[b] - p[a])[2] > -0.8:
+                return None
+    feet = [j for j in ("left_ankle", "right_ankle", "left_foot", "right_foot") if j in p]
+    floor = min(rig.object_matrix[2, 3], min(p[j][2] for j in feet))
+    return {j: float(p[j][2] - floor) for j in feet}
+
+
+def _segment_end(joint: str, mapped: Mapping[str, str], heads: Mapping[str, np.ndarray] | None = None,
+                 min_length: float = 0.0) -> str | None:
+    """The next mapped joint down the chain, skipping any whose rest head coincides with this joint's."""
+    child = CHAIN_CHILD.get(joint)
+    while child is not None and (
+        child not in mapped
+        or (heads is not None and np.linalg.norm(heads[child] - heads[joint]) <= min_length)
+    ):
+        child = CHAIN_CHILD.get(child)
+    return child
+
+
+def _body_axes(p: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    lat_h = normalize(p["left_hip"] - p["right_hip"])
+    # The collars hang off the chest at fixed offsets, so they give its lateral axis best; else the shoulders.
+    if "left_collar" in p and "right_collar" in p:
+        lat_s = normalize(p["left_collar"] - p["right_collar"])
+    else:
+        lat_s = normalize(p["left_shoulder"] - p["right_shoulder"])
+    up = normalize(p["head"] - p["pelvis"])
+    return {
+        "lat_h": lat_h,
+        "lat_s": lat_s,
+        "up": up,
+        "fwd_h": normalize(np.cross(lat_h, up)),
+        "fwd_s": normalize(np.cross(lat_s, up)),
+    }
+
+
+def _bend_weight(u: np.ndarray, v: np.ndarray, lo_deg: float = 10.0, hi_deg: float = 30.0) -> np.ndarray:
+    angle = np.degrees(np.arctan2(np.linalg.norm(np.cross(u, v), axis=-1), np.sum(u * v, -1)))
+    return _smoothstep((angle - lo_deg) / (hi_deg - lo_deg))
+
+
+def twist_reference(joint: str, p: Mapping[str, np.ndarray], rest: bool) -> tuple[np.ndarray, np.ndarray] | None:
+    """The twist reference axis (..., 3) of a joint's bone and its confidence weight (...), or None (swing only).
+
+    ``p`` maps the mapped joints' names to positions (the same joints on the source and on the rest). ``rest=True`` computes it on a rig's rest pose, where limbs may be
+    straight: the hinge axis is then the anatomical one (perpendicular to the limb and the body's facing), which has
+    the sign the measured hinge has when an elbow or knee bends the natural way.
+    """
+    ax = _body_axes(p)
+    one = np.ones(ax["up"].shape[:-1])
+    if joint == "pelvis":
+        return ax["lat_h"], one
+    if joint == "spine1":
+        return normalize(2 * ax["lat_h"] + ax["lat_s"]), one
+    if joint == "spine2":
+        return normalize(ax["lat_h"] + 2 * ax["lat_s"]), one
+    if joint in ("spine3", "neck"):
+        return ax["lat_s"], one
+    if joint in ("left_collar", "right_collar"):
+        return ax["up"], one
+    for side in ("left", "right"):
+        if joint == f"{side}_shoulder":
+            upper = normalize(p[f"{side}_elbow"] - p[joint])
+            if rest:
+                return normalize(np.cross(upper, ax["fwd_s"])), one
+            fore = normalize(p[f"{side}_wrist"] - p[f"{side}_elbow"])
+            return normalize(np.cross(upper, fore)), _bend_weight(upper, fore)
+        if joint == f"{side}_hip":
+            thigh = normalize(p[f"{side}_knee"] - p[joint])
+            if rest:
+                return normalize(np.cross(ax["fwd_h"], thigh)), one
+            shin = normalize(p[f"{side}_ankle"] - p[f"{side}_knee"])
+            return normalize(np.cross(thigh, shin)), _bend_weight(thigh, shin)
+    return None
+
+
+def retarget(
+    joints: np.ndarray,
+    rig: RigRest,
+    bone_map: Mapping[str, str],
+    options: RetargetOptions | None = None,
+    *,
+    parent_overrides: Mapping[str, str] | None = None,
+    fps: float = _sk.FPS,
+) -> RetargetResult:
+    """Pose-bone rotations (and the pelvis location) that make ``rig`` follow the source ``joints``.
+
+    joints: (T, 22, 3) metres, Y up (canonical joint order); bone_map: canonical joint name -> bone name (at least
+    :data:`REQUIRED_JOINTS`); parent_overrides: bone -> bone it effectively moves with (see
+    :meth:`RigRest.with_parents`). Unmapped bones stay at rest.
+    """
+    options = options or RetargetOptions()
+    joints = check_joints(joints)
+    bone_map = {j: b for j, b in bone_map.items() if b}
+    unknown = [j for j in bone_map if j not in JOINT_INDEX]
+    if unknown:
+        raise RetargetError(f"bone map names unknown joints: {', '.join(unknown)}")
+    missing = [j for j in REQUIRED_JOINTS if j not in bone_map]
+    if missing:
+        raise RetargetError(f"bone map is missing required joints: {', '.join(missing)}")
+    absent = [b for b in bone_map.values() if b not in rig]
+    if absent:
+        raise RetargetError(f"the armature has no bones named: {', '.join(absent)}")
+    if len(set(bone_map.values())) != len(bone_map):
+        raise RetargetError("bone map uses a bone for more than one joint")
+    rig = rig.with_parents(parent_overrides or {})
+
+    world, scale = place_source(joints, rig, bone_map, options)  # (T, 22, 3)
+    src = _to_armature(rig, world)  # (T, 22, 3) armature space
+    T = src.shape[0]
+    sp = {n: src[:, JOINT_INDEX[n]] for n in JOINT_NAMES}
+    sp_mapped = {j: sp[j] for j in bone_map}
+    rest_heads = rig.heads
+    rp = {j: rest_heads[rig.index(b)] for j, b in bone_map.items()}
+    min_length = 1e-3 * float(leg_length(rp))  # heads closer than this count as the same place
+
+    bone_of = dict(bone_map)
+    joint_of = {b: j for j, b in bone_of.items()}
+    mapped_idx = sorted((rig.index(b) for b in bone_of.values()), key=rig.order.index)
+    pelvis_idx = rig.index(bone_of["pelvis"])
+    pelvis_anc = set(rig.ancestors(pelvis_idx))
+    if any(i in pelvis_anc for i in mapped_idx):
+        raise RetargetError("the pelvis bone must not be below another mapped bone")
+
+    rest = rig.matrices
+    rest_inv = np.linalg.inv(rest)
+    local_rot = {}  # bone index -> (T, 3, 3)
+    local_loc = {}  # bone index -> (T, 3)
+    pose_cache: dict[int, np.ndarray] = {}
+
+    def pose(b: int) -> np.ndarray:
+        """(T, 4, 4) posed armature-space matrix of bone b (ancestors must be solved already)."""
+        if b in pose_cache:
+            return pose_cache[b]
+        p = rig.parents[b]
+        base = rest[b] if p < 0 else pose(p) @ (rest_inv[p] @ rest[b])
+        m = np.broadcast_to(base, (T, 4, 4)).copy()
+        if b in local_loc:
+            m[:, :3, 3] += np.einsum("tij,tj->ti", m[:, :3, :3], local_loc[b])
+        if b in local_rot:
+            m[:, :3, :3] = m[:, :3, :3] @ local_rot[b]
+        pose_cache[b] = m
+        return m
+
+    def carried(b: int) -> np.ndarray:
+        """(T, 4, 4): where bone b's rest frame is carried by its posed parent (before its own transform)."""
+        p = rig.parents[b]
+        base = rest[b] if p < 0 else pose(p) @ (rest_inv[p] @ rest[b])
+        return np.broadcast_to(base, (T, 4, 4))
+
+    if options.match not in ("effectors", "directions"):
+        raise RetargetError(f"unknown match mode {options.match!r} (use 'effectors' or 'directions')")
+    desired: dict[str, np.ndarray] = {}  # joint -> (T, 3) where its head should go (armature space)
+    ik_chains = dict(LIMBS)  # two-bone chains: root joint -> (middle, end); the spine's last two added below
+    for b in mapped_idx:
+        name = rig.names[b]
+        joint = joint_of[name]
+        end = _segment_end(joint, bone_of, rp, min_length)
+        C = carried(b)
+        Crot = C[:, :3, :3]
+        head = C[:, :3, 3]
+        if options.match == "effectors" and joint in ik_chains:
+            mid, eff = ik_chains[joint]
+            if end == mid and _segment_end(mid, bone_of, rp, min_length) == eff:
+                upper = float(np.linalg.norm(rp[mid] - rp[joint]))
+                lower = float(np.linalg.norm(rp[eff] - rp[mid]))
+                if eff in desired:  # the spine's neck + head: the head's aim point is already known
+                    goal = desired[eff]
+                    pole = desired.get(mid, goal) - head
+                elif joint in ("left_hip", "right_hip"):
+                    # Feet go where the scaled source puts them (no sinking, no sliding); the leg bends to reach.
+                    goal = sp[eff]
+                    pole = sp[mid] - sp[joint]
+                else:
+                    # Hands relative to the shoulder, the source arm scaled to the rig's arm length.
+                    src_len = np.linalg.norm(sp[mid] - sp[joint], axis=-1) + np.linalg.norm(sp[eff] - sp[mid], axis=-1)
+                    k = (upper + lower) / np.maximum(src_len, _EPS)
+                    goal = head + k[:, None] * (sp[eff] - sp[joint])
+                    pole = sp[mid] - sp[joint]
+                desired[mid] = two_bone_middle(head, goal, upper, lower, pole)
+                desired[eff] = goal
+        if end is None:
+            local_rot[b] = np.tile(np.eye(3), (T, 1, 1))
+        else:
+            seg_rest = rest_heads[rig.index(bone_of[end])] - rest_heads[b]
+            v_local = rest[b, :3, :3].T @ normalize(seg_rest)
+            a = Crot @ v_local  # (T, 3)
+            if end in desired:
+                d = normalize(desired[end] - head)  # (T, 3)
+            else:
+                d = normalize(sp[end] - sp[joint])  # (T, 3)
+            ref = twist_reference(joint, sp_mapped, rest=False) if options.twist else None
+            fallback = None
+            if ref is not None:
+                fallback = ref[0]
+            W = rotation_between(a, d, fallback) @ Crot  # (T, 3, 3)
+            if ref is not None:
+                h_rest, _ = twist_reference(joint, rp, rest=True)
+                h_rest = h_rest - np.dot(h_rest, normalize(seg_rest)) * normalize(seg_rest)
+                if np.linalg.norm(h_rest) < 1e-6:
+                    h_rest = any_perpendicular(normalize(seg_rest))
+                h_local = rest[b, :3, :3].T @ normalize(h_rest)
+                h_cur = np.einsum("tij,j->ti", W, h_local)
+                h_src, weight = ref
+                h_src = h_src - np.sum(h_src * d, -1, keepdims=True) * d
+                weight = np.where(np.linalg.norm(h_src, axis=-1) < 1e-3, 0.0, weight)
+                theta = signed_angle(normalize(h_cur), normalize(h_src), d)
+                theta = _hysteresis(theta, weight)
+                W = axis_angle_matrix(d, theta) @ W
+            if joint == "pelvis" and options.twist and options.match == "effectors":
+                # The hips' lateral axis decides the facing and where the legs hang: match it exactly, and the
+                # pelvis segment as closely as that allows.
+                lat_src = normalize(sp["left_hip"] - sp["right_hip"])
+                lat_rest = rest[b, :3, :3].T @ normalize(rp["left_hip"] - rp["right_hip"])
+                seg_local = v_local
+                F_rest = _frame(Crot @ lat_rest, Crot @ seg_local)
+                W = _frame(lat_src, d) @ np.swapaxes(F_rest, -1, -2) @ Crot
+            local_rot[b] = np.swapaxes(Crot, -1, -2) @ W
+        if b == pelvis_idx:
+            # Place the pelvis so that the rig's hip midpoint lands on the scaled source hips' midpoint.
+            local_loc[b] = np.zeros((T, 3))
+            pose_cache.clear()
+            hips_now = (pose(rig.index(bone_of["left_hip"]))[:, :3, 3] + pose(rig.index(bone_of["right_hip"]))[:, :3, 3]) / 2
+            hips_src = (sp["left_hip"] + sp["right_hip"]) / 2
+            local_loc[b] = np.einsum("tji,tj->ti", Crot, hips_src - hips_now)  # Crot^T @ delta
+            pose_cache.clear()
+            if options.match == "effectors":
+                # Spine, neck and head aim at the source's joints, relative to the pelvis, scaled to the rig's
+                # spine length (so the head lands where the source's does, whatever the spine's proportions).
+                chain = [joint]
+                while chain[-1] is not None and chain[-1] != "head":
+                    chain.append(_segment_end(chain[-1], bone_of, rp, min_length))
+                chain = [j for j in chain if j is not None]
+                if len(chain) >= 2:
+                    pairs = list(zip(chain[:-1], chain[1:]))
+                    l_rig = sum(float(np.linalg.norm(rp[y] - rp[x])) for x, y in pairs)
+                    l_src = sum(np.linalg.norm(sp[y] - sp[x], axis=-1) for x, y in pairs)
+                    k = (l_rig / np.maximum(l_src, _EPS))[:, None]
+                    base = pose(b)[:, :3, 3]
+                    for j in chain[1:]:
+                        desired[j] = base + k * (sp[j] - sp[joint])
+                    if len(chain) >= 4:  # e.g. chest -> neck -> head: a two-bone chain, so the head lands exactly
+                        ik_chains[chain[-3]] = (chain[-2], chain[-1])
+
+    rotations = np.stack([matrix_to_quat(local_rot[b]) for b in mapped_idx], axis=1)  # (T, K, 4)
+    rotations = quat_continuity(rotations)
+    return RetargetResult(
+        bones=[rig.names[b] for b in mapped_idx],
+        joints=[joint_of[rig.names[b]] for b in mapped_idx],
+        rotations=rotations,
+        root_bone=rig.names[pelvis_idx],
+        root_location=local_loc[pelvis_idx],
+        scale=scale,
+        fps=float(fps),
+        source_world=world,
+        rig=rig,
+    )
+
+
+LIMBS = {  # chain root -> (middle joint, effector)
+    "left_shoulder": ("left_elbow", "left_wrist"),
+    "right_shoulder": ("right_elbow", "right_wrist"),
+    "left_hip": ("left_knee", "left_ankle"),
+    "right_hip": ("right_knee", "right_ankle"),
+}
+SPINE_CHAIN = ("pelvis", "spine1", "spine2", "spine3", "neck", "head")
+
+
+def _frame(primary: np.ndarray, secondary: np.ndarray) -> np.ndarray:
+    """Orthonormal frames (..., 3, 3): columns = primary, secondary made perpendicular, their cross product."""
+    e1 = normalize(primary)
+    e2 = secondary - np.sum(secondary * e1, -1, keepdims=True) * e1
+    e2 = np.where(np.linalg.norm(e2, axis=-1, keepdims=True) < 1e-9, any_perpendicular(e1), normalize(e2))
+    return np.stack([e1, e2, np.cross(e1, e2)], axis=-1)
+
+
+def two_bone_middle(root: np.ndarray, goal: np.ndarray, upper: float, lower: float, pole: np.ndarray) -> np.ndarray:
+    """Where the middle joint of a two-bone chain goes (T, 3) so its end reaches ``goal`` (or points at it when
+    out of reach), bending in the plane of root -> goal and ``pole`` (a vector towards the side the joint bends)."""
+    v = goal - root
+    dist = np.linalg.norm(v, axis=-1)
+    u = v / np.maximum(dist, _EPS)[:, None]
+    reach = np.clip(dist, abs(upper - lower) + 1e-9, upper + lower)
+    cos_a = np.clip((upper**2 + reach**2 - lower**2) / (2 * upper * reach), -1.0, 1.0)
+    side = pole - np.sum(pole * u, -1, keepdims=True) * u
+    weak = np.linalg.norm(side, axis=-1) < 1e-6
+    side = np.where(weak[:, None], any_perpendicular(u), normalize(side))
+    return root + upper * (cos_a[:, None] * u + np.sqrt(1 - cos_a**2)[:, None] * side)
+
+
+def _hysteresis(theta: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Follow the measured twist where it is trustworthy (weight 1), hold the last one where it is not (weight 0)."""
+    out = np.empty_like(theta)
+    confident = np.nonzero(weight > 0.5)[0]
+    prev = float(theta[confident[0]]) if len(confident) else 0.0
+    for t in range(len(theta)):
+        w = float(weight[t])
+        prev = prev + w * float(wrap_angle(theta[t] - prev))
+        out[t] = prev
+    return out
+
+
+def quat_continuity(q: np.ndarray) -> np.ndarray:
+    """Flip signs along axis 0 so consecutive quaternions (T, ..., 4) lie in the same hemisphere (no flips)."""
+    q = np.array(q, dtype=np.float64, copy=True)
+    for t in range(1, q.shape[0]):
+        flip = np.sum(q[t] * q[t - 1], axis=-1) < 0
+        q[t][flip] *= -1
+    return q
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Fidelity: how well the rig follows the source, measured by forward kinematics on the rig.
+
+EFFECTOR_CHAINS = {
+    "left_wrist": ("left_shoulder", "left_elbow", "left_wrist"),
+    "right_wrist": ("right_shoulder", "right_elbow", "right_wrist"),
+    "left_ankle": ("left_hip", "left_knee", "left_ankle"),
+    "right_ankle": ("right_hip", "right_knee", "right_ankle"),
+    "head": ("pelvis", "spine1", "spine2", "spine3", "neck", "head"),
+}
+FOOT_JOINTS = ("left_ankle", "right_ankle", "left_foot", "right_foot")
+
+
+def facing_yaw(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """Heading (radians, about world Z, 0 = facing -Y) from a left and a right joint (T, 3), unwrapped over time."""
+    lat = left - right
+    fwd = np.stack([-lat[..., 1], lat[..., 0]], -1)  # cross(lat, z) in the ground plane
+    yaw = np.arctan2(fwd[..., 0], -fwd[..., 1])
+    return np.unwrap(yaw)
+
+
+def fidelity(result: RetargetResult, target_joints: Mapping[str, np.ndarray] | None = None) -> dict:
+    """Compare the rig's FK with the placed source (both world space, source scaled by ``result.scale``).
+
+    Effector error: for each wrist, ankle and the head, its position relative to the limb's root (shoulder, hip,
+    pelvis) on the rig vs the source's, the source limb scaled to the rig's limb length; divided by that length
+    (a fraction: 0.05 = 5% of limb length), averaged over frames; ``*_global`` the same for world positions
+    against the placed source. Feet: ``sink_cm`` is the most any foot joint (ankles, toes) of the rig goes below
+    its rest height above the floor (rigs whose rest stands; else below the same source joint). Direction: heading error from the hips' lateral
+    axis (mean, degrees), total turn of source and rig, and the angle between their net travel directions.
+    ``target_joints`` (joint -> (T, 3) world positions) replaces the rig's FK, e.g. with Blender's own evaluation.
+    """
+    wj = result.world_joints() if target_joints is None else target_joints
+    src = result.source_world
+    J = JOINT_INDEX
+    out: dict[str, float] = {}
+    rest_world = _to_world(result.rig, result.rig.heads)
+    rest = {j: rest_world[result.rig.index(b)] for j, b in zip(result.joints, result.bones)}
+    errors, errors_global = [], []
+    for eff, chain in EFFECTOR_CHAINS.items():
+        chain = [j for j in chain if j in wj]
+        if len(chain) < 2 or chain[-1] != eff:
+            continue
+        l_tgt = sum(np.linalg.norm(rest[b] - rest[a]) for a, b in zip(chain[:-1], chain[1:]))
+        l_src = sum(np.linalg.norm(src[:, J[b]] - src[:, J[a]], axis=-1) for a, b in zip(chain[:-1], chain[1:]))
+        rel_t = wj[eff] - wj[chain[0]]
+        rel_s = (src[:, J[eff]] - src[:, J[chain[0]]]) * (l_tgt / np.maximum(l_src, _EPS))[:, None]
+        err = np.linalg.norm(rel_t - rel_s, axis=-1) / l_tgt
+        out[f"{eff}_err"] = float(err.mean())
+        out[f"{eff}_err_max"] = float(err.max())
+        glob = np.linalg.norm(wj[eff] - src[:, J[eff]], axis=-1) / l_tgt
+        out[f"{eff}_err_global"] = float(glob.mean())
+        errors.append(err.mean())
+        errors_global.append(glob.mean())
+    out["effector_err_mean"] = float(np.mean(errors))
+    out["effector_err_global_mean"] = float(np.mean(errors_global))
+    feet = [j for j in FOOT_JOINTS if j in wj]
+    standing = standing_heights(result.rig, dict(zip(result.joints, result.bones)))
+    floor = result.rig.object_matrix[2, 3]
+    # Sinking: how far a foot joint of the rig goes below the same joint of the placed source (whose feet stand
+    # on the floor, lifted or lowered to the rig's standing ankle height when the rig's rest stands).
+    sink = max(float(np.max(src[:, J[j], 2] - wj[j][:, 2])) for j in feet)
+    out["sink_cm"] = max(0.0, sink) * 100
+    if standing is not None:
+        # Also: how far a foot joint goes below its own rest height above the floor (the sole going under, for
+        # rigs whose rest pose is a plausible standing pose).
+        floor = min(floor, min(rest[j][2] for j in standing))
+        below = max(float(np.max(standing[j] - (wj[j][:, 2] - floor))) for j in standing)
+        out["below_rest_height_cm"] = max(0.0, below) * 100
+    out["lowest_foot_cm"] = (min(float(np.min(wj[j][:, 2])) for j in feet) - floor) * 100
+    yaw_t = facing_yaw(wj["left_hip"], wj["right_hip"])
+    yaw_s = facing_yaw(src[:, J["left_hip"]], src[:, J["right_hip"]])
+    out["facing_err_deg"] = float(np.degrees(np.mean(np.abs(wrap_angle(yaw_t - yaw_s)))))
+    out["turn_src_deg"] = float(np.degrees(yaw_s[-1] - yaw_s[0]))
+    out["turn_rig_deg"] = float(np.degrees(yaw_t[-1] - yaw_t[0]))
+    hips_t = (wj["left_hip"] + wj["right_hip"]) / 2
+    hips_s = (src[:, J["left_hip"]] + src[:, J["right_hip"]]) / 2
+    travel_t = hips_t[-1, :2] - hips_t[0, :2]
+    travel_s = hips_s[-1, :2] - hips_s[0, :2]
+    out["travel_src_m"] = float(np.linalg.norm(travel_s))
+    out["travel_rig_m"] = float(np.linalg.norm(travel_t))
+    if np.linalg.norm(travel_s) > 1e-3 and np.linalg.norm(travel_t) > 1e-3:
+        cos = np.dot(travel_t, travel_s) / (np.linalg.norm(travel_t) * np.linalg.norm(travel_s))
+        out["travel_angle_deg"] = float(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+    else:
+        out["travel_angle_deg"] = 0.0
+    return out

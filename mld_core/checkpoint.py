@@ -1,0 +1,151 @@
+"""Model folders: ``config.json`` (every config, skeleton, fps, normalisation stats, provenance), one safetensors file per
+component and a ``MODEL_CARD.md``. Loading never unpickles; a missing or corrupt file raises ``CheckpointError`` naming it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
+from mld_core.models.denoiser import DenoiserConfig
+from mld_core.models.vae import VAEConfig
+from mld_core.schedulers import SchedulerConfig
+
+FORMAT = "mld-core-model"
+FORMAT_VERSION = 1
+DEFAULT_MODEL_DIR = Path(__file__).resolve().parent / "weights" / "default"
+
+
+class CheckpointError(Exception):
+    """A model folder that cannot be used; the message names the file and what is wrong."""
+
+
+@dataclass
+class ModelConfig:
+    """Everything needed to rebuild a model from its folder (saved as config.json)."""
+
+    model_id: str = "mld-untrained"
+    vae: VAEConfig = field(default_factory=VAEConfig)
+    denoiser: DenoiserConfig | None = None
+    scheduler: SchedulerConfig = field(default_factory=SchedulerConfig)
+    text_encoder: dict = field(default_factory=lambda: {"kind": "minilm", "path": None})
+    fps: int = 20
+    min_frames: int = 20
+    max_frames: int = 196
+    mean: list = field(default_factory=list)
+    std: list = field(default_factory=list)
+    latent_scale: float = 1.0  # z_diffusion = latent_scale * (mu - latent_mean)
+    latent_mean: float = 0.0
+    actions: list = field(default_factory=list)
+    guidance_scale: float = 4.0
+    num_inference_steps: int = 50
+    skeleton: dict = field(default_factory=dict)
+    provenance: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if isinstance(self.vae, dict):
+            self.vae = VAEConfig(**self.vae)
+        if isinstance(self.denoiser, dict):
+            self.denoiser = DenoiserConfig(**self.denoiser)
+        if isinstance(self.scheduler, dict):
+            self.scheduler = SchedulerConfig(**self.scheduler)
+
+    def to_dict(self) -> dict:
+        return {"format": FORMAT, "format_version": FORMAT_VERSION, **asdict(self)}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "ModelConfig":
+        data = {k: v for k, v in data.items() if k not in ("format", "format_version")}
+        known = set(cls.__dataclass_fields__)
+        return cls(**{k: v for k, v in data.items() if k in known})
+
+    @property
+    def mean_std(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.asarray(self.mean, np.float32), np.asarray(self.std, np.float32)
+
+
+def skeleton_info() -> dict:
+    from mld_core.motion import skeleton
+
+    return {"joint_names": list(skeleton.JOINT_NAMES), "parents": [int(p) for p in skeleton.PARENTS],
+            "reference_offsets": np.asarray(skeleton.REFERENCE_OFFSETS).round(6).tolist()}
+
+
+def _atomic_write(path: Path, write) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def save_json(path: Path, data: dict) -> None:
+    _atomic_write(Path(path), lambda tmp: Path(tmp).write_text(json.dumps(data, indent=2) + "\n"))
+
+
+def save_weights(path: Path, module: torch.nn.Module, dtype: torch.dtype | None = None) -> None:
+    state = {k: (v.to(dtype) if dtype is not None and v.is_floating_point() else v).detach().contiguous().cpu()
+             for k, v in module.state_dict().items()}
+    _atomic_write(Path(path), lambda tmp: save_file(state, tmp, metadata={"format": "pt"}))
+
+
+def load_weights(path: Path, module: torch.nn.Module) -> None:
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"missing weights file: {path}")
+    try:
+        state = load_file(str(path))
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise CheckpointError(f"corrupt weights file {path}: {exc}") from None
+    expected = module.state_dict()
+    missing = sorted(set(expected) - set(state))
+    unexpected = sorted(set(state) - set(expected))
+    if missing or unexpected:
+        raise CheckpointError(f"weights file {path} does not match its config.json: "
+                              f"missing {missing[:5]}, unexpected {unexpected[:5]}")
+    for key, value in state.items():
+        if value.shape != expected[key].shape:
+            raise CheckpointError(f"weights file {path}: {key} has shape {tuple(value.shape)}, "
+                                  f"config.json expects {tuple(expected[key].shape)}")
+    module.load_state_dict({k: v.to(expected[k].dtype) for k, v in state.items()})
+
+
+def load_config(model_dir: Path) -> ModelConfig:
+    model_dir = Path(model_dir)
+    if not model_dir.is_dir():
+        raise CheckpointError(f"model folder not found: {model_dir}")
+    path = model_dir / "config.json"
+    if not path.is_file():
+        raise CheckpointError(f"missing {path} (not a model folder?)")
+    try:
+        data = json.loads(path.read_text())
+        if data.get("format") != FORMAT:
+            raise ValueError(f"format is {data.get('format')!r}, expected {FORMAT!r}")
+        return ModelConfig.from_dict(data)
+    except (ValueError, TypeError, KeyError) as exc:
+        raise CheckpointError(f"corrupt {path}: {exc}") from None
+
+
+def save_model(model_dir: Path, config: ModelConfig, vae: torch.nn.Module, denoiser: torch.nn.Module | None = None,
+               dtype: torch.dtype | None = None, card: str | None = None) -> Path:
+    """Write a complete model folder (weights first, config.json last, each file atomically)."""
+    model_dir = Path(model_dir)
+    model_dir.mkdir(parents=True, exist_ok=True)
+    save_weights(model_dir / "vae.safetensors", vae, dtype)
+    if denoiser is not None:
+        save_weights(model_dir / "denoiser.safetensors", denoiser, dtype)
+    if card is not None:
+        _atomic_write(model_dir / "MODEL_CARD.md", lambda tmp: Path(tmp).write_text(card))
+    save_json(model_dir / "config.json", config.to_dict())
+    return model_dir

@@ -1,0 +1,55 @@
+"""``python -m mld_core data prepare <dataset> SRC --out DIR``: build HumanML3D-format training folders."""
+
+from __future__ import annotations
+
+import time
+
+
+def register(groups) -> None:
+    prepare = groups["data"].add_parser("prepare", help="write a HumanML3D-format folder from a motion dataset")
+    datasets = prepare.add_subparsers(dest="dataset", metavar="DATASET")
+    p = datasets.add_parser(
+        "bandai",
+        help="the Bandai Namco Research motion datasets (CC BY-NC 4.0)",
+        description="Read the Bandai Namco BVH clips (the released .tar.xz, streamed, or its extracted "
+        "folder) and write features, joints, generated captions, splits, Mean/Std and actions.json "
+        "to --out. Rerunning replaces a previous output of this command; any other non-empty "
+        "folder is refused.",
+    )
+    p.add_argument("src", metavar="SRC", help="bandai-namco-research-motiondataset.tar.xz or its extracted folder")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (new, empty, or a previous output)")
+    p.add_argument("--workers", type=int, default=2, help="worker processes (default 2; 1 = in-process)")
+    p.add_argument("--no-mirror", action="store_true", help="do not add the mirrored M<id> copies")
+    p.add_argument("--limit", type=int, default=None, help="only the first N clips (quick trials)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_run_bandai)
+    prepare.set_defaults(func=lambda args: _missing_dataset(prepare))
+
+
+def _missing_dataset(parser) -> int:
+    parser.print_help()
+    return 2
+
+
+def _run_bandai(args) -> int:
+    from ..cli import UsageError
+    from .bandai import PrepareError, prepare_bandai
+
+    if args.workers < 1:
+        raise UsageError("--workers must be at least 1")
+    if args.limit is not None and args.limit < 1:
+        raise UsageError("--limit must be at least 1")
+    start = time.perf_counter()
+    try:
+        summary = prepare_bandai(args.src, args.out, workers=args.workers, mirror=not args.no_mirror,
+                                 progress=not args.quiet, limit=args.limit)
+    except PrepareError as exc:
+        raise UsageError(str(exc)) from None
+    took = time.perf_counter() - start
+    s = summary["splits"]
+    print(
+        f"wrote {summary['out']}: {summary['clips']} clips + {summary['mirrored']} mirrored, "
+        f"{summary['frames']} frames at 20 fps; train {s['train']}, val {s['val']}, test {s['test']}; "
+        f"{len(summary['skipped'])} skipped; {took:.1f} s"
+    )
+    return 0

@@ -1,0 +1,136 @@
+"""Latent denoiser of MLD: predicts the noise eps added to the latent z_t, given the timestep and a condition.
+
+Tokens: [timestep (+ target length) ; condition tokens ; latent tokens] through a SkipTransformer (concatenation,
+the paper's default), or [timestep ; latent tokens] attending to the condition tokens (``cross_attention=True``).
+
+Conditions (``cond``): "text" - the frozen sentence encoder's pooled vector as one token, plus ``text_pool_tokens``
+tokens attention-pooled from its per-token features (the pooled vector alone barely tells "left" from "right");
+"action" - a learned embedding per class; "none" - unconditional. Every kind has a learned null condition used for
+classifier-free guidance (condition dropout in training, the unconditional branch at sampling).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import torch
+from torch import nn
+
+from mld_core.models.transformer import SkipTransformer, TransformerConfig, sinusoidal_embedding
+
+
+@dataclass
+class DenoiserConfig:
+    latent_tokens: int = 1
+    latent_dim: int = 256
+    cond: str = "text"  # text | action | none
+    text_dim: int = 384
+    text_pool_tokens: int = 4  # 0: pooled vector only
+    num_actions: int = 0
+    length_conditioning: bool = True
+    max_frames: int = 196
+    cond_dropout: float = 0.1
+    transformer: TransformerConfig = field(default_factory=lambda: TransformerConfig(layers=5))
+
+    def __post_init__(self):
+        if isinstance(self.transformer, dict):
+            self.transformer = TransformerConfig(**self.transformer)
+        if self.cond not in ("text", "action", "none"):
+            raise ValueError(f"cond must be text, action or none, got {self.cond!r}")
+        if self.cond == "action" and self.num_actions < 1:
+            raise ValueError("an action-conditioned denoiser needs num_actions >= 1")
+
+    @property
+    def cond_tokens(self) -> int:
+        return 1 + self.text_pool_tokens if self.cond == "text" else 1
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class AttentionPool(nn.Module):
+    """K learned queries attend over a padded token sequence: (B, L, d) -> (B, K, d)."""
+
+    def __init__(self, dim: int, heads: int, k: int):
+        super().__init__()
+        self.queries = nn.Parameter(torch.randn(k, dim) * 0.02)
+        self.attn = nn.MultiheadAttention(dim, heads, batch_first=True)
+        self.norm = nn.LayerNorm(dim)
+
+    def forward(self, tokens: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        q = self.queries.expand(tokens.shape[0], -1, -1)  # (B, K, d)
+        out, _ = self.attn(q, tokens, tokens, key_padding_mask=~valid, need_weights=False)
+        return self.norm(out + q)
+
+
+class LatentDenoiser(nn.Module):
+    def __init__(self, config: DenoiserConfig):
+        super().__init__()
+        self.config = config
+        d = config.transformer.dim
+        self.latent_in = nn.Linear(config.latent_dim, d)
+        self.latent_out = nn.Linear(d, config.latent_dim)
+        self.time_mlp = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
+        if config.length_conditioning:
+            self.length_mlp = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
+        if config.cond == "text":
+            self.text_proj = nn.Linear(config.text_dim, d)
+            if config.text_pool_tokens:
+                self.token_proj = nn.Linear(config.text_dim, d)
+                self.token_pool = AttentionPool(d, config.transformer.heads, config.text_pool_tokens)
+        elif config.cond == "action":
+            self.action_embedding = nn.Embedding(config.num_actions, d)
+        self.null_condition = nn.Parameter(torch.randn(config.cond_tokens, d) * 0.02)
+        n_seq = 1 + config.latent_tokens + (0 if config.transformer.cross_attention else config.cond_tokens)
+        self.positions = nn.Parameter(torch.randn(n_seq, d) * 0.02)
+        if config.transformer.cross_attention:
+            self.cond_positions = nn.Parameter(torch.randn(config.cond_tokens, d) * 0.02)
+        self.transformer = SkipTransformer(config.transformer)
+
+    # -- conditions -------------------------------------------------------------------------------------------
+    def condition_tokens(self, batch_size: int, *, text=None, actions: torch.Tensor | None = None,
+                         drop: torch.Tensor | None = None) -> torch.Tensor:
+        """The condition as tokens (B, C, d). ``text`` is a TextEmbedding (pooled, tokens, mask); ``actions`` (B,)
+        class ids; ``drop`` (B,) bool replaces the condition with the learned null condition (guidance, dropout)."""
+        cfg = self.config
+        null = self.null_condition.expand(batch_size, -1, -1)  # (B, C, d)
+        if cfg.cond == "none":
+            return null
+        if cfg.cond == "text":
+            if text is None:
+                raise ValueError("a text-conditioned denoiser needs text embeddings")
+            cond = self.text_proj(text.pooled.to(null.dtype))[:, None]  # (B, 1, d)
+            if cfg.text_pool_tokens:
+                words = self.token_proj(text.tokens.to(null.dtype))  # (B, L, d)
+                cond = torch.cat([cond, self.token_pool(words, text.mask)], dim=1)  # (B, 1 + K, d)
+        else:
+            if actions is None:
+                raise ValueError("an action-conditioned denoiser needs action ids")
+            cond = self.action_embedding(actions)[:, None]  # (B, 1, d)
+        if drop is not None:
+            cond = torch.where(drop[:, None, None], null, cond)
+        return cond
+
+    def null_tokens(self, batch_size: int) -> torch.Tensor:
+        return self.null_condition.expand(batch_size, -1, -1)
+
+    # -- noise prediction ---------------------------------------------------------------------------------------
+    def forward(self, z_t: torch.Tensor, timesteps: torch.Tensor, cond: torch.Tensor,
+                lengths: torch.Tensor | None = None) -> torch.Tensor:
+        """z_t (B, n, latent_dim), timesteps (B,), cond (B, C, d) from ``condition_tokens``, lengths (B,) frames
+        -> predicted noise (B, n, latent_dim)."""
+        cfg = self.config
+        d = cfg.transformer.dim
+        time = self.time_mlp(sinusoidal_embedding(timesteps, d))  # (B, d)
+        if cfg.length_conditioning:
+            if lengths is None:
+                raise ValueError("this denoiser is conditioned on the target length: pass lengths")
+            time = time + self.length_mlp(sinusoidal_embedding(lengths.float() * (1000.0 / cfg.max_frames), d))
+        latent = self.latent_in(z_t)  # (B, n, d)
+        if cfg.transformer.cross_attention:
+            seq = torch.cat([time[:, None], latent], dim=1) + self.positions  # (B, 1 + n, d)
+            out = self.transformer(seq, memory=cond + self.cond_positions)
+        else:
+            seq = torch.cat([time[:, None], cond, latent], dim=1) + self.positions  # (B, 1 + C + n, d)
+            out = self.transformer(seq)
+        return self.latent_out(out[:, -cfg.latent_tokens:])

@@ -1,0 +1,97 @@
+"""Motion VAE of MLD: per-frame features of any length <-> a latent z of shape (n, d).
+
+Encoder: [2n learnable distribution tokens ; Linear(features)] + positions -> SkipTransformer; the first n outputs
+are mu, the next n are log-variance. Decoder: L positional queries attend to z (cross-attention memory) through a
+SkipTransformer and a Linear back to the feature size. Padding masks let any length up to ``max_frames`` through.
+Features are normalised (Mean/Std of the training folder) outside this module.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import torch
+from torch import nn
+
+from mld_core.models.transformer import SkipTransformer, TransformerConfig, sinusoidal_embedding
+
+
+@dataclass
+class VAEConfig:
+    feature_dim: int = 263
+    latent_tokens: int = 1  # n
+    latent_dim: int = 256  # d
+    max_frames: int = 196
+    encoder: TransformerConfig = field(default_factory=lambda: TransformerConfig(layers=3))
+    decoder: TransformerConfig = field(default_factory=lambda: TransformerConfig(layers=3, cross_attention=True))
+    kl_weight: float = 1e-4
+
+    def __post_init__(self):
+        if isinstance(self.encoder, dict):
+            self.encoder = TransformerConfig(**self.encoder)
+        if isinstance(self.decoder, dict):
+            self.decoder = TransformerConfig(**self.decoder)
+        if not self.decoder.cross_attention:
+            raise ValueError("the VAE decoder reads z through cross-attention (decoder.cross_attention=True)")
+        if self.encoder.dim != self.latent_dim or self.decoder.dim != self.latent_dim:
+            raise ValueError("encoder/decoder width must equal latent_dim")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def padding_mask(lengths: torch.Tensor, max_len: int) -> torch.Tensor:
+    """(B,) lengths -> (B, max_len) bool, True where padded."""
+    return torch.arange(max_len, device=lengths.device)[None, :] >= lengths[:, None]
+
+
+class MotionVAE(nn.Module):
+    def __init__(self, config: VAEConfig):
+        super().__init__()
+        self.config = config
+        d, n = config.latent_dim, config.latent_tokens
+        self.embed = nn.Linear(config.feature_dim, d)
+        self.distribution_tokens = nn.Parameter(torch.randn(2 * n, d) * 0.02)
+        self.latent_positions = nn.Parameter(torch.randn(n, d) * 0.02)
+        self.encoder = SkipTransformer(config.encoder)
+        self.decoder = SkipTransformer(config.decoder)
+        self.head = nn.Linear(d, config.feature_dim)
+        self.register_buffer("frame_positions", sinusoidal_embedding(torch.arange(config.max_frames), d), persistent=False)
+
+    def encode(self, x: torch.Tensor, lengths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """x (B, T, F) normalised features, lengths (B,) -> mu, logvar each (B, n, d)."""
+        B, T, _ = x.shape
+        n = self.config.latent_tokens
+        if T > self.config.max_frames:
+            raise ValueError(f"{T} frames exceed the model's max_frames {self.config.max_frames}")
+        frames = self.embed(x) + self.frame_positions[:T]  # (B, T, d)
+        tokens = self.distribution_tokens.expand(B, -1, -1)  # (B, 2n, d)
+        seq = torch.cat([tokens, frames], dim=1)  # (B, 2n + T, d)
+        mask = torch.cat([torch.zeros(B, 2 * n, dtype=torch.bool, device=x.device), padding_mask(lengths, T)], dim=1)
+        out = self.encoder(seq, padding_mask=mask)[:, : 2 * n]  # (B, 2n, d)
+        return out[:, :n], out[:, n:].clamp(-20.0, 10.0)
+
+    def decode(self, z: torch.Tensor, lengths: torch.Tensor, max_len: int | None = None) -> torch.Tensor:
+        """z (B, n, d), lengths (B,) -> (B, T, F) normalised features, zero beyond each length."""
+        T = int(lengths.max()) if max_len is None else max_len
+        if T > self.config.max_frames:
+            raise ValueError(f"{T} frames exceed the model's max_frames {self.config.max_frames}")
+        B = z.shape[0]
+        queries = self.frame_positions[:T].expand(B, -1, -1)  # (B, T, d)
+        mask = padding_mask(lengths, T)
+        memory = z + self.latent_positions
+        out = self.head(self.decoder(queries, padding_mask=mask, memory=memory))  # (B, T, F)
+        return out.masked_fill(mask[..., None], 0.0)
+
+    def forward(self, x: torch.Tensor, lengths: torch.Tensor, sample: bool = True):
+        mu, logvar = self.encode(x, lengths)
+        z = mu + torch.randn_like(mu) * (0.5 * logvar).exp() if sample else mu
+        return self.decode(z, lengths, max_len=x.shape[1]), mu, logvar
+
+    def loss(self, x: torch.Tensor, lengths: torch.Tensor) -> tuple[torch.Tensor, dict]:
+        """MSE on valid frames of normalised features + kl_weight * KL(q(z|x) || N(0, I))."""
+        recon, mu, logvar = self(x, lengths)
+        valid = ~padding_mask(lengths, x.shape[1])  # (B, T)
+        mse = ((recon - x) ** 2).mean(-1)[valid].mean()
+        kl = (-0.5 * (1 + logvar - mu**2 - logvar.exp())).sum(-1).mean()
+        return mse + self.config.kl_weight * kl, {"mse": mse.item(), "kl": kl.item()}

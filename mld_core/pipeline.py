@@ -1,0 +1,244 @@
+"""Text/action/unconditional motion generation with a trained MLD model folder.
+
+    pipe = MLDPipeline.from_pretrained()            # the bundled default model
+    out = pipe(["a person waves the right hand"], seconds=4, seed=0)
+    out.joints  # (N, T, 22, 3) metres, Y up, facing +Z at frame 0
+
+Paper symbols: z_T ~ N(0, I) the initial latent, eps_theta(z_t, t, c) the denoiser, s the guidance scale,
+eps = eps(z_t, t, null) + s * (eps(z_t, t, c) - eps(z_t, t, null)), D the VAE decoder, x = D(z_0 / scale + mean).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from mld_core.checkpoint import DEFAULT_MODEL_DIR, CheckpointError, ModelConfig, load_config, load_weights
+from mld_core.models.denoiser import LatentDenoiser
+from mld_core.models.vae import MotionVAE
+from mld_core.schedulers import DDIMScheduler
+
+
+class Cancelled(Exception):
+    """Raised when the progress callback returns False."""
+
+
+@dataclass
+class MLDOutput:
+    features: np.ndarray  # (N, T, F) float32, denormalised, zero beyond each length
+    joints: np.ndarray  # (N, T, 22, 3) float32 metres; frames beyond a length repeat its last frame
+    lengths: np.ndarray  # (N,) int frames
+    prompts: list
+    seeds: list
+    fps: int = 20
+    model_id: str = ""
+    timings: dict = field(default_factory=dict)
+
+
+def _as_list(value, n: int, name: str) -> list:
+    if isinstance(value, (str, int, float)) or value is None:
+        return [value] * n
+    value = list(value)
+    if len(value) != n:
+        raise ValueError(f"{name} has {len(value)} entries for {n} prompts")
+    return value
+
+
+class MLDPipeline:
+    def __init__(self, config: ModelConfig, vae: MotionVAE, denoiser: LatentDenoiser | None, text_encoder=None,
+                 device: str | torch.device = "cpu"):
+        self.config = config
+        self.device = torch.device(device)
+        self.vae = vae.eval().to(self.device)
+        self.denoiser = denoiser.eval().to(self.device) if denoiser is not None else None
+        self.text_encoder = text_encoder
+        self.scheduler = DDIMScheduler(config.scheduler)
+        mean, std = config.mean_std
+        self.mean, self.std = mean, std
+
+    # -- loading ----------------------------------------------------------------------------------------------
+    @classmethod
+    def from_pretrained(cls, path: str | Path | None = None, device: str = "cpu", text_encoder=None) -> "MLDPipeline":
+        """Load a model folder (None: the bundled default). ``text_encoder`` overrides the one named in config.json."""
+        model_dir = Path(path) if path is not None else DEFAULT_MODEL_DIR
+        config = load_config(model_dir)
+        vae = MotionVAE(config.vae)
+        load_weights(model_dir / "vae.safetensors", vae)
+        denoiser = None
+        if config.denoiser is not None:
+            denoiser = LatentDenoiser(config.denoiser)
+            load_weights(model_dir / "denoiser.safetensors", denoiser)
+            if config.denoiser.cond == "text" and text_encoder is None:
+                from mld_core.models.text_encoder import load_text_encoder
+
+                text_encoder = load_text_encoder(config.text_encoder)
+        if len(config.mean) != config.vae.feature_dim or len(config.std) != config.vae.feature_dim:
+            raise CheckpointError(f"{model_dir / 'config.json'}: mean/std must have {config.vae.feature_dim} values")
+        return cls(config, vae, denoiser, text_encoder, device)
+
+    # -- sizes --------------------------------------------------------------------------------------------------
+    @property
+    def model_id(self) -> str:
+        return self.config.model_id
+
+    @property
+    def fps(self) -> int:
+        return self.config.fps
+
+    @property
+    def min_seconds(self) -> float:
+        return self.config.min_frames / self.config.fps
+
+    @property
+    def max_seconds(self) -> float:
+        return self.config.max_frames / self.config.fps
+
+    def frames_for(self, seconds: float) -> int:
+        if not np.isfinite(seconds) or not self.min_seconds <= seconds <= self.max_seconds:
+            raise ValueError(f"seconds must be between {self.min_seconds:g} and {self.max_seconds:g}, got {seconds}")
+        return int(round(seconds * self.config.fps))
+
+    # -- normalisation ------------------------------------------------------------------------------------------
+    def normalize(self, features: np.ndarray) -> np.ndarray:
+        return (features - self.mean) / self.std
+
+    def denormalize(self, features: np.ndarray) -> np.ndarray:
+        return features * self.std + self.mean
+
+    def latents_to_features(self, z: torch.Tensor, lengths: torch.Tensor) -> np.ndarray:
+        """Diffusion-space latents (B, n, d) -> denormalised features (B, T, F), zero beyond each length."""
+        mu = z / self.config.latent_scale + self.config.latent_mean
+        x = self.vae.decode(mu, lengths).float().cpu().numpy()
+        feats = self.denormalize(x)
+        for i, n in enumerate(lengths.tolist()):
+            feats[i, n:] = 0.0
+        return feats.astype(np.float32)
+
+    # -- conditions ---------------------------------------------------------------------------------------------
+    def _condition(self, prompts: list, actions: list | None, kind: str) -> tuple[torch.Tensor, torch.Tensor]:
+        """(cond tokens, null tokens), each (B, C, d)."""
+        den = self.denoiser
+        B = len(prompts)
+        if kind == "text":
+            text = self.text_encoder(list(prompts))
+            text = type(text)(**{k: v.to(self.device) for k, v in vars(text).items()})
+            cond = den.condition_tokens(B, text=text)
+        elif kind == "action":
+            ids = torch.tensor([self._action_id(a) for a in actions], device=self.device)
+            cond = den.condition_tokens(B, actions=ids)
+        else:
+            cond = den.null_tokens(B)
+        return cond, den.null_tokens(B)
+
+    def _action_id(self, action) -> int:
+        names = self.config.actions
+        if isinstance(action, (int, np.integer)) and 0 <= int(action) < len(names):
+            return int(action)
+        if action in names:
+            return names.index(action)
+        raise ValueError(f"unknown action {action!r}; this model knows: {', '.join(names)}")
+
+    # -- sampling -------------------------------------------------------------------------------------------------
+    @torch.inference_mode()
+    def __call__(self, prompts: str | Sequence[str], seconds: float | Sequence[float] = 4.0, *,
+                 actions: Sequence | None = None, num_inference_steps: int | None = None,
+                 guidance_scale: float | None = None, seed: int = 0, num_variants: int = 1,
+                 callback: Callable[[int, int], bool | None] | None = None, unconditional: bool = False) -> MLDOutput:
+        """Generate ``num_variants`` motions per prompt; row i*num_variants + v uses seed ``seed + v``.
+        ``unconditional`` samples with the null condition (the prompts then only label the rows)."""
+        if self.denoiser is None:
+            raise CheckpointError("this model folder has only a VAE; sample with sample_prior() or train a denoiser")
+        timings = {}
+        t_start = time.perf_counter()
+        cond_kind = "none" if unconditional else self.denoiser.config.cond
+        # 1. Inputs: one row per (prompt, variant); each row has its own seed and generator.
+        prompts = [prompts] if isinstance(prompts, str) else list(prompts)
+        if actions is not None and isinstance(actions, (str, int)):
+            actions = [actions]
+        n_prompts = len(actions) if (cond_kind == "action" and actions is not None and not prompts) else len(prompts)
+        if n_prompts == 0:
+            raise ValueError("no prompts given")
+        if cond_kind == "action" and actions is None:
+            raise ValueError("this model is conditioned on actions: pass actions=[...]")
+        if cond_kind == "text" and any(not isinstance(p, str) or not p.strip() for p in prompts):
+            raise ValueError("empty prompt")
+        prompts = prompts or [""] * n_prompts
+        actions = _as_list(actions, n_prompts, "actions") if actions is not None else None
+        secs = _as_list(seconds, n_prompts, "seconds")
+        frames = [self.frames_for(float(s)) for s in secs]
+        steps = int(num_inference_steps or self.config.num_inference_steps)
+        s = float(self.config.guidance_scale if guidance_scale is None else guidance_scale)
+        if num_variants < 1:
+            raise ValueError("num_variants must be >= 1")
+        rows = [(i, v) for i in range(n_prompts) for v in range(num_variants)]
+        row_prompts = [prompts[i] for i, _ in rows]
+        row_actions = [actions[i] for i, _ in rows] if actions is not None else None
+        seeds = [int(seed) + v for _, v in rows]
+        lengths = torch.tensor([frames[i] for i, _ in rows], device=self.device)
+        B = len(rows)
+
+        # 2. Condition c and the null condition for classifier-free guidance.
+        t0 = time.perf_counter()
+        cond, null = self._condition(row_prompts, row_actions, cond_kind)
+        timings["condition_s"] = time.perf_counter() - t0
+
+        # 3. z_T ~ N(0, I), drawn per row from its own seed so a batch equals single runs.
+        n, d = self.config.vae.latent_tokens, self.config.vae.latent_dim
+        z = torch.stack([torch.randn(n, d, generator=torch.Generator().manual_seed(sd)) for sd in seeds]).to(self.device)
+
+        # 4. DDIM: z_t -> z_{t-1} with eps = eps_null + s * (eps_c - eps_null).
+        t0 = time.perf_counter()
+        self.scheduler.set_timesteps(steps)
+        use_guidance = s != 1.0 and cond_kind != "none"
+        both_cond = torch.cat([null, cond]) if use_guidance else cond
+        both_len = torch.cat([lengths, lengths]) if use_guidance else lengths
+        total = len(self.scheduler.timesteps)
+        for k, t in enumerate(self.scheduler.timesteps):
+            z_in = torch.cat([z, z]) if use_guidance else z
+            t_batch = torch.full((z_in.shape[0],), int(t), device=self.device)
+            eps = self.denoiser(z_in, t_batch, both_cond, both_len)
+            if use_guidance:
+                eps_null, eps_cond = eps.chunk(2)
+                eps = eps_null + s * (eps_cond - eps_null)
+            z, _ = self.scheduler.step(eps, t, z)
+            if callback is not None and callback(k + 1, total) is False:
+                raise Cancelled(f"cancelled at step {k + 1} of {total}")
+        timings["diffusion_s"] = time.perf_counter() - t0
+
+        # 5. Decode x = D(z_0) and recover joints.
+        t0 = time.perf_counter()
+        features = self.latents_to_features(z, lengths)
+        timings["decode_s"] = time.perf_counter() - t0
+        joints = self.joints_from_features(features, lengths.tolist())
+        timings["total_s"] = time.perf_counter() - t_start
+        return MLDOutput(features, joints, lengths.cpu().numpy(), row_prompts, seeds, self.config.fps,
+                         self.model_id, timings)
+
+    @torch.inference_mode()
+    def sample_prior(self, seconds: float = 4.0, num: int = 1, seed: int = 0) -> MLDOutput:
+        """Unconditional generation by decoding z ~ N(0, I) from the VAE prior (no denoiser)."""
+        frames = self.frames_for(float(seconds))
+        seeds = [int(seed) + i for i in range(num)]
+        n, d = self.config.vae.latent_tokens, self.config.vae.latent_dim
+        mu = torch.stack([torch.randn(n, d, generator=torch.Generator().manual_seed(sd)) for sd in seeds])
+        lengths = torch.full((num,), frames)
+        z = (mu - self.config.latent_mean) * self.config.latent_scale
+        features = self.latents_to_features(z.to(self.device), lengths.to(self.device))
+        joints = self.joints_from_features(features, lengths.tolist())
+        return MLDOutput(features, joints, lengths.numpy(), [""] * num, seeds, self.config.fps, self.model_id)
+
+    @staticmethod
+    def joints_from_features(features: np.ndarray, lengths: list) -> np.ndarray:
+        from mld_core.motion.features import features_to_joints
+
+        B, T = features.shape[:2]
+        joints = np.zeros((B, T, 22, 3), np.float32)
+        for i, n in enumerate(lengths):
+            joints[i, :n] = features_to_joints(features[i, :n])
+            joints[i, n:] = joints[i, n - 1]
+        return joints

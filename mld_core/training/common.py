@@ -1,0 +1,67 @@
+"""Pieces both training stages share: threads, seeds, resumable train state, content-balanced sampling."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from mld_core.checkpoint import _atomic_write
+
+STATE_FILE = "train_state.pt"
+
+
+def setup_torch(seed: int, threads: int | None) -> None:
+    torch.set_num_threads(threads or os.cpu_count() or 1)
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def save_train_state(run: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer, step: int,
+                     extra: dict | None = None) -> None:
+    """Everything --resume needs, as tensors and plain values (loadable with weights_only=True)."""
+    state = {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
+             "torch_rng": torch.get_rng_state(), "extra": json.dumps(extra or {})}
+    _atomic_write(Path(run) / STATE_FILE, lambda tmp: torch.save(state, tmp))
+
+
+def load_train_state(run: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer) -> tuple[int, dict]:
+    path = Path(run) / STATE_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"nothing to resume: {path} does not exist")
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    model.load_state_dict(state["model"])
+    optimizer.load_state_dict(state["optimizer"])
+    torch.set_rng_state(state["torch_rng"])
+    return int(state["step"]), json.loads(state["extra"])
+
+
+def balanced_weights(labels: list, power: float) -> np.ndarray:
+    """Sampling weights ~ count(label)^-power (power 0: uniform over items, 1: uniform over labels)."""
+    counts = Counter(labels)
+    w = np.array([counts[label] ** -power for label in labels], dtype=np.float64)
+    return w / w.sum()
+
+
+class Budget:
+    """Stops a loop after max_steps or max_minutes, whichever comes first."""
+
+    def __init__(self, max_steps: int | None, max_minutes: float | None):
+        self.max_steps, self.max_minutes = max_steps, max_minutes
+        self.start = time.monotonic()
+
+    def done(self, step: int) -> bool:
+        if self.max_steps is not None and step >= self.max_steps:
+            return True
+        return self.max_minutes is not None and (time.monotonic() - self.start) / 60 >= self.max_minutes
+
+    @property
+    def minutes(self) -> float:
+        return (time.monotonic() - self.start) / 60

@@ -1,0 +1,267 @@
+"""Stage 2: train the latent denoiser on latents of the frozen VAE encoder.
+
+    python -m mld_core train denoiser --data DIR --vae RUN --cond text|action|none --out RUN2 [--minutes 60] [--resume]
+
+Latents are precomputed once (the encoder means of ``crops_per_clip`` random crops per clip plus the whole clip) and
+cached in the run folder, as are the frozen text encoder's embeddings of every caption. DDPM training with epsilon
+prediction, condition dropout for classifier-free guidance, content-balanced sampling and an EMA of the weights.
+The run folder is a complete model folder (config.json, vae.safetensors, denoiser.safetensors).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+from tqdm import tqdm
+
+from mld_core.checkpoint import load_config, load_weights, save_json, save_weights
+from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser
+from mld_core.models.vae import MotionVAE
+from mld_core.schedulers import DDPMScheduler
+from mld_core.training.common import Budget, balanced_weights, load_train_state, save_train_state, setup_torch
+from mld_core.training.vae import prepare_run_dir
+
+LATENT_CACHE = "latents.safetensors"
+TEXT_CACHE = "text_embeddings.safetensors"
+
+
+@dataclass
+class DenoiserTrainConfig:
+    data: str = ""
+    vae: str = ""
+    out: str = ""
+    cond: str = "text"
+    seed: int = 0
+    threads: int | None = None
+    steps: int | None = None
+    minutes: float | None = None
+    batch_size: int = 128
+    lr: float = 1e-4
+    ema_decay: float = 0.999
+    crops_per_clip: int = 8
+    balance_power: float = 0.7
+    max_text_tokens: int = 32
+    save_every: int = 500
+    guidance_scale: float = 4.0
+    text_encoder: dict = field(default_factory=lambda: {"kind": "minilm", "path": None})
+    denoiser: DenoiserConfig = field(default_factory=DenoiserConfig)
+
+    def __post_init__(self):
+        if isinstance(self.denoiser, dict):
+            self.denoiser = DenoiserConfig(**self.denoiser)
+
+
+@dataclass
+class Unit:
+    """A stretch of a clip with the captions that describe it (HumanML3D captions may cover a time span)."""
+
+    features: np.ndarray
+    captions: list
+    label: str
+
+
+def text_units(clips, fps: int) -> list[Unit]:
+    units = []
+    for clip in clips:
+        whole = []
+        for cap in clip.captions:
+            start, end = float(cap.start_s or 0.0), float(cap.end_s or 0.0)
+            if start == 0.0 and end == 0.0:
+                whole.append(cap.text)
+                continue
+            segment = clip.features[int(start * fps): int(end * fps)]
+            if len(segment) >= 10:
+                units.append(Unit(segment, [cap.text], clip.action or "?"))
+        if whole or not clip.captions:
+            units.append(Unit(clip.features, whole or [""], clip.action or "?"))
+    return units
+
+
+@torch.no_grad()
+def encode_latents(vae: MotionVAE, units: list[Unit], mean, std, crops: int, min_frames: int, max_frames: int,
+                   seed: int) -> dict:
+    """Encoder means of random crops: mu (N, n, d), lengths (N,), unit (N,)."""
+    rng = np.random.default_rng(seed)
+    jobs = []  # (unit index, start, length)
+    for u, unit in enumerate(units):
+        T = len(unit.features)
+        full = min(T, max_frames)
+        jobs.append((u, 0, full))
+        for _ in range(crops if T > min_frames else 0):
+            L = int(rng.integers(min_frames, full + 1))
+            jobs.append((u, int(rng.integers(0, T - L + 1)), L))
+    jobs.sort(key=lambda j: j[2])
+    mus = []
+    vae.eval()
+    batch = []
+    bar = tqdm(total=len(jobs), desc="encoding latents", unit="crop", dynamic_ncols=True)
+
+    def flush():
+        x = np.stack([(units[u].features[s:s + L] - mean) / std for u, s, L in batch]).astype(np.float32)
+        mu, _ = vae.encode(torch.from_numpy(x), torch.full((len(batch),), batch[0][2]))
+        mus.append(mu)
+        bar.update(len(batch))
+        batch.clear()
+
+    for job in jobs:
+        if batch and (job[2] != batch[0][2] or len(batch) * job[2] >= 16384):
+            flush()
+        batch.append(job)
+    if batch:
+        flush()
+    bar.close()
+    return {"mu": torch.cat(mus), "lengths": torch.tensor([j[2] for j in jobs]),
+            "unit": torch.tensor([j[0] for j in jobs])}
+
+
+@torch.no_grad()
+def embed_captions(encoder, captions: list[str], max_tokens: int, batch: int = 64) -> dict:
+    pooled, tokens, mask = [], [], []
+    for k in tqdm(range(0, len(captions), batch), desc="encoding captions", unit="batch", dynamic_ncols=True):
+        emb = encoder(captions[k:k + batch])
+        t = torch.zeros(emb.tokens.shape[0], max_tokens, emb.tokens.shape[-1], dtype=torch.float16)
+        m = torch.zeros(emb.tokens.shape[0], max_tokens, dtype=torch.bool)
+        L = min(max_tokens, emb.tokens.shape[1])
+        t[:, :L] = emb.tokens[:, :L].half()
+        m[:, :L] = emb.mask[:, :L]
+        pooled.append(emb.pooled.float())
+        tokens.append(t)
+        mask.append(m)
+    return {"pooled": torch.cat(pooled), "tokens": torch.cat(tokens), "mask": torch.cat(mask)}
+
+
+def _cached(path: Path, make) -> dict:
+    if path.is_file():
+        return load_file(str(path))
+    data = make()
+    save_file({k: v.contiguous() for k, v in data.items()}, str(path))
+    return data
+
+
+def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
+    from mld_core.data.dataset import load_split
+
+    out, vae_dir = Path(cfg.out), Path(cfg.vae)
+    base = load_config(vae_dir)
+    prepare_run_dir(out, resume)
+    setup_torch(cfg.seed, cfg.threads)
+    vae = MotionVAE(base.vae)
+    load_weights(vae_dir / "vae.safetensors", vae)
+    for p in vae.parameters():
+        p.requires_grad_(False)
+    mean, std = base.mean_std
+    fps = base.fps
+
+    # 1. Training units, their captions and class labels.
+    units = text_units(load_split(cfg.data, "train"), fps)
+    if not units:
+        raise ValueError(f"{cfg.data}: the train split is empty")
+    actions = sorted({u.label for u in units if u.label != "?"}) if cfg.cond == "action" else list(base.actions)
+    dcfg = cfg.denoiser
+    dcfg.cond = cfg.cond
+    dcfg.latent_tokens, dcfg.latent_dim, dcfg.max_frames = base.vae.latent_tokens, base.vae.latent_dim, base.max_frames
+    if cfg.cond == "action":
+        dcfg.num_actions = len(actions)
+
+    # 2. Frozen-encoder latents and caption embeddings, cached in the run folder.
+    lat = _cached(out / LATENT_CACHE, lambda: encode_latents(vae, units, mean, std, cfg.crops_per_clip,
+                                                             base.min_frames, base.max_frames, cfg.seed))
+    mu, lengths, unit_of = lat["mu"], lat["lengths"], lat["unit"]
+    latent_mean = float(mu.mean())
+    latent_scale = float(1.0 / mu.std())
+    z0_all = (mu - latent_mean) * latent_scale  # (N, n, d)
+    captions = sorted({c for u in units for c in u.captions})
+    caption_index = {c: i for i, c in enumerate(captions)}
+    unit_captions = [np.array([caption_index[c] for c in u.captions]) for u in units]
+    text = None
+    if cfg.cond == "text":
+        from mld_core.models.text_encoder import TextEmbedding, load_text_encoder
+
+        encoder = load_text_encoder(cfg.text_encoder)
+        dcfg.text_dim = encoder.dim
+        text = _cached(out / TEXT_CACHE, lambda: embed_captions(encoder, captions, cfg.max_text_tokens))
+        del encoder
+    label_ids = torch.tensor([actions.index(units[u].label) if units[u].label in actions else 0
+                              for u in unit_of.tolist()])
+
+    # 3. Model, EMA, optimiser, sampling weights.
+    denoiser = LatentDenoiser(dcfg)
+    ema = copy.deepcopy(denoiser).requires_grad_(False)
+    opt = torch.optim.AdamW(denoiser.parameters(), lr=cfg.lr, weight_decay=0.01)
+    step, extra = load_train_state(out, denoiser, opt) if resume else (0, {})
+    if resume and (out / "denoiser.safetensors").is_file():
+        load_weights(out / "denoiser.safetensors", ema)
+    weights = balanced_weights([units[u].label for u in unit_of.tolist()], cfg.balance_power)
+    rng = np.random.default_rng(cfg.seed + step)
+    scheduler = DDPMScheduler(base.scheduler)
+    n_train = base.scheduler.num_train_timesteps
+
+    config = copy.deepcopy(base)
+    config.model_id = out.name
+    config.denoiser = dcfg
+    config.text_encoder = dict(cfg.text_encoder) if cfg.cond == "text" else {}
+    config.latent_mean, config.latent_scale = latent_mean, latent_scale
+    config.actions = actions
+    config.guidance_scale = cfg.guidance_scale
+    config.provenance = {**base.provenance, "denoiser_training": {k: v for k, v in asdict(cfg).items() if k != "denoiser"}}
+    shutil.copyfile(vae_dir / "vae.safetensors", out / "vae.safetensors")
+    save_json(out / "train_config.json", {**asdict(cfg), "stage": "denoiser"})
+
+    def save():
+        config.provenance["denoiser_steps"] = step
+        save_weights(out / "denoiser.safetensors", ema)
+        save_json(out / "config.json", config.to_dict())
+        save_train_state(out, denoiser, opt, step)
+
+    # 4. DDPM training: eps_theta(z_t, t, c) ~ eps with z_t = sqrt(a_t) z_0 + sqrt(1 - a_t) eps.
+    budget = Budget(cfg.steps, cfg.minutes)
+    log = open(out / "log.jsonl", "a")
+    bar = tqdm(total=cfg.steps, initial=step, desc="denoiser", unit="step", dynamic_ncols=True)
+    denoiser.train()
+    running = None
+    while not budget.done(step):
+        idx = torch.from_numpy(rng.choice(len(z0_all), size=cfg.batch_size, p=weights))
+        z0, L = z0_all[idx], lengths[idx]
+        B = len(idx)
+        t = torch.randint(0, n_train, (B,))
+        noise = torch.randn_like(z0)
+        z_t = scheduler.add_noise(z0, noise, t)
+        drop = torch.rand(B) < dcfg.cond_dropout
+        if cfg.cond == "text":
+            cap = torch.tensor([int(rng.choice(unit_captions[u])) for u in unit_of[idx].tolist()])
+            emb = TextEmbedding(pooled=text["pooled"][cap], tokens=text["tokens"][cap].float(), mask=text["mask"][cap])
+            cond = denoiser.condition_tokens(B, text=emb, drop=drop)
+        elif cfg.cond == "action":
+            cond = denoiser.condition_tokens(B, actions=label_ids[idx], drop=drop)
+        else:
+            cond = denoiser.null_tokens(B)
+        loss = torch.nn.functional.mse_loss(denoiser(z_t, t, cond, L), noise)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(denoiser.parameters(), 1.0)
+        opt.step()
+        with torch.no_grad():
+            decay = min(cfg.ema_decay, (1 + step) / (10 + step))
+            for pe, p in zip(ema.parameters(), denoiser.parameters()):
+                pe.lerp_(p, 1 - decay)
+        step += 1
+        running = float(loss) if running is None else 0.98 * running + 0.02 * float(loss)
+        bar.update(1)
+        bar.set_postfix(loss=f"{running:.4f}")
+        if step % cfg.save_every == 0 or budget.done(step):
+            log.write(json.dumps({"step": step, "loss": running, "minutes": round(budget.minutes, 2)}) + "\n")
+            log.flush()
+            save()
+    bar.close()
+    log.close()
+    if not (out / "config.json").is_file():
+        save()
+    return out

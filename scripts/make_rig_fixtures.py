@@ -1,0 +1,61 @@
+"""Write the rest poses of a few real rigs to tests/fixtures/rigs/ (needs bpy; run with the dev venv's python).
+
+    python scripts/make_rig_fixtures.py [--bvh tests/fixtures/bandai/dataset-1_bye_normal_001.bvh]
+
+Writes canonical.json (the canonical armature built in Blender from retarget.canonical_rig()), rigify_metarig.json
+(Rigify's human metarig), rigify.json (the rig Rigify generates from it) and bandai_bvh.json (a Bandai clip
+imported with Blender's own BVH importer at scale 0.01). Each is a RigRest: names, parents, rest matrices
+(bone.matrix_local, armature space), tails and the object's world matrix.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--bvh", default=str(REPO / "tests/fixtures/bandai/dataset-1_bye_normal_001.bvh"))
+    parser.add_argument("--out", default=str(REPO / "tests/fixtures/rigs"))
+    args = parser.parse_args(argv)
+    os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="mld_bpy_"))
+
+    import bpy  # noqa: I001 - bpy first: it puts addon_utils on the path
+    import addon_utils
+
+    from blender_addon import retarget as rt
+    from blender_addon import rig_io
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+
+    canonical = rig_io.build_armature(rt.canonical_rig(), "canonical")
+    rig_io.read_rig(canonical).save(out / "canonical.json")
+
+    addon_utils.enable("rigify", default_set=True)
+    bpy.ops.object.armature_human_metarig_add()
+    metarig = bpy.context.object
+    rig_io.read_rig(metarig).save(out / "rigify_metarig.json")
+    bpy.ops.pose.rigify_generate()
+    rig_io.read_rig(bpy.context.object).save(out / "rigify.json")
+
+    addon_utils.enable("io_anim_bvh", default_set=True)
+    bpy.ops.import_anim.bvh(filepath=args.bvh, global_scale=0.01)
+    bvh_rig = rig_io.read_rig(bpy.context.object)
+    bvh_rig.name = "bandai_bvh"
+    bvh_rig.save(out / "bandai_bvh.json")
+    for path in sorted(out.glob("*.json")):
+        print(f"{path.relative_to(REPO)}: {path.stat().st_size / 1024:.0f} KB")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
