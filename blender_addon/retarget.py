@@ -450,7 +450,8 @@ class RetargetOptions:
         source's bend plane, the spine aims each bone at the scaled source's next joint. "directions" turns every
         segment exactly along the source's (effectors then drift by the difference in proportions).
     floor: for rigs whose rest pose stands, shift the take vertically so the source's standing ankle height (its
-        5th percentile over the take) becomes the rig's rest ankle height.
+        5th percentile over the take) becomes the rig's rest ankle height, and pitch the feet so a foot planted
+        flat in the source is as flat as the rig's rest foot.
     """
 
     yaw_deg: float = 0.0
@@ -566,12 +567,31 @@ def place_source(
         src_stand = float(np.percentile(ankles, 5))
         rig_stand = (standing["left_ankle"] + standing["right_ankle"]) / 2
         world[..., 2] += rig_stand - src_stand
-        # Toes likewise, each on its own (the foot then pitches so the toe joint keeps its height above the floor).
-        for toe in ("left_foot", "right_foot"):
-            if toe in standing:
-                src_toe = float(np.percentile(world[:, JOINT_INDEX[toe], 2] - origin[2], 5))
-                world[:, JOINT_INDEX[toe], 2] += standing[toe] - src_toe
+        # Feet: a foot planted flat in the source should be flat on the rig too, whatever angle each skeleton's
+        # ankle -> toe line makes with the floor. Pitch the source's feet by the difference between the rig's rest
+        # pitch and the source's pitch while standing (frames where that ankle is low).
+        heads = _to_world(rig, rig.heads)
+        for side in ("left", "right"):
+            ankle, toe = f"{side}_ankle", f"{side}_foot"
+            if toe not in standing:
+                continue
+            rig_pitch = _pitch(heads[rig.index(bone_map[toe])] - heads[rig.index(bone_map[ankle])])
+            foot = world[:, JOINT_INDEX[toe]] - world[:, JOINT_INDEX[ankle]]  # (T, 3)
+            height = world[:, JOINT_INDEX[ankle], 2]
+            planted = height <= np.percentile(height, 10) + 1e-9
+            src_pitch = float(np.median(_pitch(foot[planted])))
+            pitch = _pitch(foot) + (rig_pitch - src_pitch)
+            horiz = foot[:, :2] / np.maximum(np.linalg.norm(foot[:, :2], axis=-1, keepdims=True), _EPS)
+            length = np.linalg.norm(foot, axis=-1, keepdims=True)
+            new = np.concatenate([horiz * np.cos(pitch)[:, None], -np.sin(pitch)[:, None]], -1) * length
+            ok = np.linalg.norm(foot[:, :2], axis=-1) > 1e-3 * np.maximum(length[:, 0], _EPS)
+            world[ok, JOINT_INDEX[toe]] = world[ok, JOINT_INDEX[ankle]] + new[ok]
     return world, scale
+
+
+def _pitch(v: np.ndarray) -> np.ndarray:
+    """Angle (radians) of vectors (..., 3) below the horizontal plane (world Z up)."""
+    return np.arctan2(-v[..., 2], np.linalg.norm(v[..., :2], axis=-1))
 
 
 def standing_heights(rig: RigRest, bone_map: Mapping[str, str]) -> dict[str, float] | None:

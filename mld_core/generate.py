@@ -140,9 +140,9 @@ def run(args) -> int:
     prompts = [line.text for line in lines]
     cond = pipe.denoiser.config.cond if pipe.denoiser is not None else "none"
     encoder = pipe.text_encoder
-    if cond == "text" and encoder is not None and hasattr(encoder, "count_tokens"):
+    if cond == "text" and hasattr(encoder, "tokenizer"):
         for line in lines:
-            count = encoder.count_tokens(line.text)
+            count = len(encoder.tokenizer.tokenize_ids(line.text)) + 2  # [CLS] ... [SEP]
             if count > encoder.max_tokens:
                 print(f"warning: prompt{f' on line {line.line}' if line.line else ''} has {count} tokens; "
                       f"only the first {encoder.max_tokens} are used", file=sys.stderr)

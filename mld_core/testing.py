@@ -12,7 +12,7 @@ from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser
 from mld_core.models.transformer import TransformerConfig
 from mld_core.models.vae import MotionVAE, VAEConfig
 
-TINY_TEXT_ENCODER = {"kind": "minilm-random", "seed": 0, "hidden": 32, "layers": 2, "heads": 2}
+TINY_TEXT_ENCODER = {"kind": "minilm-random", "seed": 0, "hidden": 32, "layers": 2, "heads": 2, "vocab_path": "builtin"}
 
 
 def tiny_config(cond: str = "text", actions: tuple = ("walk", "run", "wave"), latent_tokens: int = 1,

@@ -384,15 +384,15 @@ def test_generation_work_with_tiny_pipeline(tiny_dir):
     assert job2.wait(60)
     _drain(runner)
     assert cache.loads == 1 and job2.result.load_s == 0.0
-    np.testing.assert_array_equal(job2.result.takes[0].joints, takes[0].joints)
+    np.testing.assert_allclose(job2.result.takes[0].joints, takes[0].joints, atol=1e-4)  # batch of 2 vs 1
     # cancel with the real pipeline: stops at the next step callback
-    job3 = runner.submit(request.with_(steps=1000, variants=1))
+    job3 = runner.submit(request.with_(steps=500, variants=1))
     while job3.step_done < 2 and not job3.ended:
         time.sleep(0.001)
     job3.cancel()
     assert job3.wait(30)
     _drain(runner)
-    assert job3.state == jobs.CANCELLED and job3.step_done < 1000
+    assert job3.state == jobs.CANCELLED and job3.step_done < 500
     # a missing model folder is a message, not a traceback
     job4 = runner.submit(request.with_(model_dir=str(tiny_dir) + "_missing"))
     assert job4.wait(30)

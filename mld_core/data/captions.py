@@ -217,7 +217,7 @@ STYLES: dict[str, dict[str, list[str]]] = {
         subject=["a happy person", "a cheerful person", "someone in a good mood"],
         adverb=["happily", "cheerfully", "with a bounce of joy"],
         lead=["full of joy", "in a cheerful mood"],
-        walks=["walks cheerfully", "bounces along"],
+        walks=["walks cheerfully", "walks happily"],
         runs=["runs happily"],
     ),
     "sad": _S(
@@ -252,14 +252,14 @@ STYLES: dict[str, dict[str, list[str]]] = {
         subject=["a man", "a manly person", "a macho man"],
         adverb=["in a masculine way", "with broad, manly movements", "in a macho manner"],
         lead=["acting tough and manly"],
-        walks=["strides", "walks with a wide stride"],
+        walks=["strides", "walks firmly"],
         runs=["runs powerfully"],
     ),
     "masculine": _S(
         subject=["a man", "a manly person", "a masculine person"],
         adverb=["in a masculine way", "with broad, strong movements", "in a manly manner"],
         lead=["moving in a manly way"],
-        walks=["strides", "walks with a wide stride"],
+        walks=["strides", "walks firmly"],
         runs=["runs powerfully"],
     ),
     "feminine": _S(
@@ -280,7 +280,7 @@ STYLES: dict[str, dict[str, list[str]]] = {
         subject=["a young person", "a lively young person", "a youthful person"],
         adverb=["in a youthful way", "with youthful energy", "with a spring in the step"],
         lead=["young and full of energy"],
-        walks=["walks with a spring in the step", "walks briskly"],
+        walks=["walks lightly", "walks briskly"],
         runs=["runs lightly"],
     ),
     "old": _S(
@@ -301,14 +301,14 @@ STYLES: dict[str, dict[str, list[str]]] = {
         subject=["a tired person", "a weary person", "someone who is worn out"],
         adverb=["wearily", "tiredly", "as if worn out"],
         lead=["worn out", "tired"],
-        walks=["trudges", "drags along"],
+        walks=["trudges", "walks wearily"],
         runs=["jogs wearily"],
     ),
     "exhausted": _S(
         subject=["an exhausted person", "a worn out person", "someone who is exhausted"],
         adverb=["wearily", "with heavy, tired movements", "as if completely exhausted"],
         lead=["exhausted", "completely worn out"],
-        walks=["trudges", "drags along"],
+        walks=["trudges", "walks wearily"],
         runs=["jogs wearily"],
     ),
     "active": _S(
@@ -322,7 +322,7 @@ STYLES: dict[str, dict[str, list[str]]] = {
         subject=["a performer in a musical", "a theatrical person", "a stage performer"],
         adverb=["theatrically", "like a dancer in a musical", "with exaggerated, showy movements"],
         lead=["as if on stage in a musical"],
-        walks=["walks theatrically", "dances along"],
+        walks=["walks theatrically", "prances"],
         runs=["runs theatrically"],
     ),
     "giant": _S(
@@ -336,8 +336,8 @@ STYLES: dict[str, dict[str, list[str]]] = {
         subject=["a thug", "a cocky street punk", "someone acting like a thug"],
         adverb=["with a cocky swagger", "like a street thug", "in a thuggish way"],
         lead=["acting like a punk"],
-        walks=["swaggers", "walks with a swagger"],
-        runs=["runs with a swagger"],
+        walks=["swaggers", "walks cockily"],
+        runs=["runs cockily"],
     ),
 }
 
@@ -376,6 +376,7 @@ def captions_for(content: str, style: str, clip_id: str, n: int = 4) -> list[str
         walks=["walks"], runs=["runs"],
     )
     locomotion = content in _LOCOMOTION
+    neutral = [("a woman" if style == "feminine" and x == "a man" else x) for x in _NEUTRAL_SUBJECTS]
     pool: list[tuple[int, str]] = []  # (shape, sentence)
     for vp in vps:
         # Shape 1: styled subject + verb phrase ("an exhausted person trudges forward").
@@ -383,22 +384,22 @@ def captions_for(content: str, style: str, clip_id: str, n: int = 4) -> list[str
             pool.append((1, f"{subj} {_fill(vp, st, rng) if locomotion else vp}."))
         # Shape 2: neutral subject + plain verb phrase + adverbial ("someone wearily walks forward",
         # "someone walks forward, with heavy, tired movements").
-        for subj in _NEUTRAL_SUBJECTS:
+        for subj in neutral:
             for adv in st["adverb"]:
                 pool.append((2, _with_adverbial(subj, _plain(vp), adv)))
         # Shape 3: leading participle ("worn out, a person walks forward and turns left").
         for lead in st["lead"]:
-            for subj in _NEUTRAL_SUBJECTS[:2]:
+            for subj in neutral[:2]:
                 pool.append((3, f"{lead}, {subj} {_plain(vp)}."))
         # Shape 4: style verb with a neutral subject (locomotion only: "someone trudges ahead ...").
         if locomotion and "{" in vp:
             for w in st["walks"] + st["runs"]:
                 if ("{walks}" in vp and w in st["walks"]) or ("{runs}" in vp and w in st["runs"]):
-                    for subj in _NEUTRAL_SUBJECTS:
+                    for subj in neutral:
                         pool.append((4, f"{subj} {vp.replace('{walks}', w).replace('{runs}', w)}."))
     if style == "normal":
         for vp in vps:
-            for subj in _NEUTRAL_SUBJECTS:
+            for subj in neutral:
                 pool.append((5, f"{subj} {_plain(vp)}."))
     # Deduplicate, keep order, then pick sentences with different shapes and different verb phrases first.
     seen: set[str] = set()
@@ -470,7 +471,7 @@ _POS = {
         "straightens waves waving raises says holds gestures guide points puts lowers lifts answer "
         "answering leans calls shouting throws punches stands kicks does turning swings raising slashing "
         "cuts slashes dances performs bounces plods stomps struts strides trudges drags shuffles toddles "
-        "lumbers swaggers looking feeling acting moving showing is looks hanging puffed drifting facing leaning spinning"
+        "lumbers swaggers prances looking feeling acting moving showing is looks hanging puffed drifting facing leaning spinning"
     ),
 }
 _LEXICON = {w: tag for tag, words in _POS.items() for w in words.split()}

@@ -26,6 +26,7 @@ class DenoiserConfig:
     cond: str = "text"  # text | action | none
     text_dim: int = 384
     text_pool_tokens: int = 4  # 0: pooled vector only
+    max_text_tokens: int = 32  # token features beyond this are not pooled (the same cut in training and sampling)
     num_actions: int = 0
     length_conditioning: bool = True
     max_frames: int = 196
@@ -101,8 +102,9 @@ class LatentDenoiser(nn.Module):
                 raise ValueError("a text-conditioned denoiser needs text embeddings")
             cond = self.text_proj(text.pooled.to(null.dtype))[:, None]  # (B, 1, d)
             if cfg.text_pool_tokens:
-                words = self.token_proj(text.tokens.to(null.dtype))  # (B, L, d)
-                cond = torch.cat([cond, self.token_pool(words, text.mask)], dim=1)  # (B, 1 + K, d)
+                L = cfg.max_text_tokens
+                words = self.token_proj(text.tokens[:, :L].to(null.dtype))  # (B, L, d)
+                cond = torch.cat([cond, self.token_pool(words, text.mask[:, :L])], dim=1)  # (B, 1 + K, d)
         else:
             if actions is None:
                 raise ValueError("an action-conditioned denoiser needs action ids")

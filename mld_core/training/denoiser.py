@@ -48,7 +48,6 @@ class DenoiserTrainConfig:
     ema_decay: float = 0.999
     crops_per_clip: int = 8
     balance_power: float = 0.7
-    max_text_tokens: int = 32
     save_every: int = 500
     guidance_scale: float = 4.0
     text_encoder: dict = field(default_factory=lambda: {"kind": "minilm", "path": None})
@@ -187,7 +186,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
 
         encoder = load_text_encoder(cfg.text_encoder)
         dcfg.text_dim = encoder.dim
-        text = _cached(out / TEXT_CACHE, lambda: embed_captions(encoder, captions, cfg.max_text_tokens))
+        text = _cached(out / TEXT_CACHE, lambda: embed_captions(encoder, captions, dcfg.max_text_tokens))
         del encoder
     label_ids = torch.tensor([actions.index(units[u].label) if units[u].label in actions else 0
                               for u in unit_of.tolist()])

@@ -1,0 +1,100 @@
+"""Export a trained run folder as a shippable model folder: fp16 safetensors, config.json and MODEL_CARD.md.
+
+    python scripts/export_model.py RUN_DIR [--out mld_core/weights/default] [--notes notes.md] [--model-id ID]
+
+Refuses to replace an existing folder unless --overwrite is given; writes into a temporary folder first.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from mld_core.checkpoint import DEFAULT_MODEL_DIR, load_config, load_weights, save_model  # noqa: E402
+from mld_core.models.denoiser import LatentDenoiser  # noqa: E402
+from mld_core.models.vae import MotionVAE  # noqa: E402
+
+CARD = """# {model_id}
+
+Motion Latent Diffusion (Chen et al., CVPR 2023) text-to-motion model, trained from scratch on two CPU cores.
+
+| | |
+|---|---|
+| data | Bandai Namco Research Motion dataset (3,076 BVH clips + left/right mirrors, 20 fps, HumanML3D 263-d features) |
+| licence | **CC BY-NC 4.0** (non-commercial), inherited from the training data; attribution: Bandai Namco Research Inc., Kobayashi et al. 2023, "Motion Capture Dataset for Practical Use of AI-based Motion Editing and Stylization" |
+| text encoder | all-MiniLM-L6-v2 (frozen; Apache-2.0), pooled vector + {pool} attention-pooled token features |
+| VAE | latent {n} x {d}; encoder/decoder {vae_layers} layers each, d {d}, 4 heads, ff 1024, long skips: {skip} |
+| denoiser | {den_layers} layers, d {den_d}, condition: {cond}, target-length conditioning: {length} |
+| sampling | DDIM {steps} steps, classifier-free guidance {guidance} |
+| lengths | {min_s:g} s to {max_s:g} s at 20 fps |
+| weights | fp16 safetensors, {size_mb:.1f} MB |
+
+## Training
+{training}
+
+## Measurements
+{metrics}
+
+## Limits
+Trained on 24 content classes of one dataset (walking, running, turning, waving and raising hands, a few gestures
+and dances, bows, punches, kicks, with 7-15 styles such as elderly, tired, happy, feminine). Prompts far from those
+contents fall back to the nearest ones. Not for commercial use.
+"""
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("run", type=Path)
+    ap.add_argument("--out", type=Path, default=DEFAULT_MODEL_DIR)
+    ap.add_argument("--model-id", default=None)
+    ap.add_argument("--notes", type=Path, default=None, help="markdown with measurements for the card")
+    ap.add_argument("--overwrite", action="store_true")
+    args = ap.parse_args(argv)
+    config = load_config(args.run)
+    if config.denoiser is None:
+        print(f"error: {args.run} has no denoiser", file=sys.stderr)
+        return 2
+    if args.out.exists() and any(args.out.iterdir()) and not args.overwrite:
+        print(f"error: {args.out} exists; pass --overwrite", file=sys.stderr)
+        return 2
+    vae, den = MotionVAE(config.vae), LatentDenoiser(config.denoiser)
+    load_weights(args.run / "vae.safetensors", vae)
+    load_weights(args.run / "denoiser.safetensors", den)
+    if args.model_id:
+        config.model_id = args.model_id
+    prov = config.provenance
+    training = "\n".join(f"- {k}: `{json.dumps(v)}`" for k, v in prov.items())
+    metrics = args.notes.read_text() if args.notes else "See the README's results table."
+    size = sum(p.numel() for m in (vae, den) for p in m.state_dict().values()) * 2 / 1e6
+    card = CARD.format(model_id=config.model_id, pool=config.denoiser.text_pool_tokens, n=config.vae.latent_tokens,
+                       d=config.vae.latent_dim, vae_layers=config.vae.encoder.layers, skip=config.vae.encoder.skip,
+                       den_layers=config.denoiser.transformer.layers, den_d=config.denoiser.transformer.dim,
+                       cond=config.denoiser.cond, length=config.denoiser.length_conditioning,
+                       steps=config.num_inference_steps, guidance=config.guidance_scale,
+                       min_s=config.min_frames / config.fps, max_s=config.max_frames / config.fps, size_mb=size,
+                       training=training, metrics=metrics)
+    tmp = Path(tempfile.mkdtemp(dir=args.out.parent, prefix=f".{args.out.name}."))
+    try:
+        save_model(tmp, config, vae, den, dtype=torch.float16, card=card)
+        if args.out.exists():
+            shutil.rmtree(args.out)
+        tmp.rename(args.out)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+    total = sum(f.stat().st_size for f in args.out.iterdir()) / 1e6
+    print(f"wrote {args.out} ({total:.1f} MB)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

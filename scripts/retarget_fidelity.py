@@ -1,0 +1,249 @@
+"""Retargeting fidelity on real rigs built in Blender (bpy), measured by forward kinematics and by Blender itself.
+
+    python scripts/retarget_fidelity.py [--clip BVH ...] [--generated PROMPT] [--rigify-generated] [--json OUT]
+
+For each source take (Bandai clips as the model sees them: 20 fps, canonical skeleton, facing +Z; or a take the
+bundled model generates) and each rig (the canonical armature, Rigify's human metarig, optionally the rig Rigify
+generates from it, and a Bandai clip imported with Blender's own BVH importer at scale 0.01), it detects the bone
+map, retargets, and prints:
+
+* effector error: wrists, ankles and head relative to the limb's root, the source limb scaled to the rig's limb
+  length, as a fraction of that length (mean over frames; ``fk`` = numpy FK, ``bl`` = Blender's evaluation of the
+  keyed action, after key reduction);
+* sink: the most a foot joint goes below the placed source's (cm), and below its rest height for standing rigs;
+* direction: heading error (deg), total turn of source vs rig, angle between net travel directions;
+* keys: reduction ratio at the default tolerances, and the largest difference between Blender's F-curve
+  evaluation and keyedit's model of it (which the reduction's error bound relies on).
+
+Runs Blender as a Python module in this process; point BLENDER_USER_RESOURCES at a scratch folder (done here).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+DEFAULT_CLIPS = [
+    REPO / "tests/fixtures/bandai/dataset-2_walk-turn-left_normal_027.bvh",
+    REPO / "tests/fixtures/bandai/dataset-2_wave-right-hand_normal_026.bvh",
+]
+DEFAULT_BVH_RIG = REPO / "tests/fixtures/bandai/dataset-1_bye_normal_001.bvh"
+
+
+def source_from_bvh(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A Bandai clip as the model's data: (T, 22, 3) canonical joints at 20 fps and (T, 4) foot contacts."""
+    from mld_core.data.bandai import clip_joints
+    from mld_core.motion import features as F
+
+    joints = F.canonical_joints(clip_joints(path.read_bytes(), source=str(path)))
+    feats = F.joints_to_features(joints)
+    contacts = feats[:, F.FOOT_CONTACT]
+    contacts = np.concatenate([contacts, contacts[-1:]], 0)  # features have T-1 rows
+    return joints, contacts
+
+
+def source_from_model(prompt: str, seconds: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    from mld_core.motion import features as F
+    from mld_core.pipeline import MLDPipeline
+
+    pipe = MLDPipeline.from_pretrained()
+    out = pipe([prompt], seconds=seconds, seed=seed)
+    n = int(out.lengths[0])
+    joints = np.asarray(out.joints[0][:n], dtype=np.float64)
+    contacts = np.asarray(out.features[0][:n, F.FOOT_CONTACT], dtype=np.float64)
+    return joints, contacts
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Blender side.
+
+
+def build_rigs(bpy, *, bvh_rig: Path, rigify_generated: bool) -> dict:
+    import addon_utils
+
+    from blender_addon import retarget as rt
+    from blender_addon import rig_io
+
+    rigs = {}
+    rigs["canonical"] = rig_io.build_armature(rt.canonical_rig(), "canonical")
+    addon_utils.enable("rigify", default_set=True)
+    bpy.ops.object.select_all(action="DESELECT")
+    bpy.ops.object.armature_human_metarig_add()
+    rigs["rigify_metarig"] = bpy.context.object
+    if rigify_generated:
+        bpy.ops.pose.rigify_generate()
+        rigs["rigify"] = bpy.context.object
+    addon_utils.enable("io_anim_bvh", default_set=True)
+    bpy.ops.import_anim.bvh(filepath=str(bvh_rig), global_scale=0.01)
+    obj = bpy.context.object
+    if obj.animation_data is not None:
+        obj.animation_data.action = None  # the importer's own motion: not ours to keep
+    rigs["bandai_bvh"] = obj
+    return rigs
+
+
+def write_action(bpy, obj, baked, name: str):
+    """Key ``baked`` (keyedit.BakedKeys) onto ``obj`` as a new action (Blender 4.4+ slotted actions)."""
+    action = bpy.data.actions.new(name)
+    slot = action.slots.new(id_type="OBJECT", name=obj.name)
+    strip = action.layers.new("Layer").strips.new(type="KEYFRAME")
+    bag = strip.channelbag(slot, ensure=True)
+    interp = {"BEZIER": 2, "LINEAR": 1}[baked.interpolation]
+    handle = list(bpy.types.Keyframe.bl_rna.properties["handle_left_type"].enum_items.keys()).index(baked.handle_type)
+    for curve in baked.curves:
+        fc = bag.fcurves.new(curve.data_path, index=curve.index)
+        fc.auto_smoothing = baked.auto_smoothing
+        n = len(curve.frames)
+        co = np.empty((n, 2), np.float32)
+        co[:, 0] = curve.frames
+        co[:, 1] = curve.values
+        pts = fc.keyframe_points
+        pts.add(n)
+        pts.foreach_set("co", co.ravel())
+        pts.foreach_set("interpolation", np.full(n, interp, np.int32))
+        pts.foreach_set("handle_left_type", np.full(n, handle, np.int32))
+        pts.foreach_set("handle_right_type", np.full(n, handle, np.int32))
+        fc.update()
+    ad = obj.animation_data or obj.animation_data_create()
+    ad.action = action
+    ad.action_slot = slot
+    return action
+
+
+def blender_joint_positions(bpy, obj, joints_to_bones: dict, frames) -> dict:
+    """World heads (F, 3) of the mapped bones as Blender evaluates each frame."""
+    scene = bpy.context.scene
+    out = {j: np.zeros((len(frames), 3)) for j in joints_to_bones}
+    mw = np.array([list(r) for r in obj.matrix_world])
+    for i, f in enumerate(frames):
+        scene.frame_set(int(f))
+        pose = obj.pose.bones
+        for j, b in joints_to_bones.items():
+            h = np.array(tuple(pose[b].head))
+            out[j][i] = mw[:3, :3] @ h + mw[:3, 3]
+    return out
+
+
+def fcurve_model_error(bpy, obj, baked) -> float:
+    """Largest |Blender's F-curve value - keyedit's evaluation| over every curve and scene frame."""
+    from blender_addon import keyedit as ke
+
+    frames = baked.frame_start + np.arange(baked.num_frames, dtype=np.float64)
+    ours = ke.evaluate_baked(baked, frames)
+    action = obj.animation_data.action
+    bag = action.layers[0].strips[0].channelbag(obj.animation_data.action_slot)
+    worst = 0.0
+    for fc in bag.fcurves:
+        theirs = np.array([fc.evaluate(f) for f in frames])
+        worst = max(worst, float(np.abs(theirs - ours[(fc.data_path, fc.array_index)]).max()))
+    return worst
+
+
+def measure(bpy, name: str, obj, joints: np.ndarray, contacts: np.ndarray, take: str, *, foot_lock: bool) -> dict:
+    from blender_addon import bone_maps as bm
+    from blender_addon import keyedit as ke
+    from blender_addon import retarget as rt
+    from blender_addon import rig_io
+
+    rig = rig_io.read_rig(obj)
+    det = bm.detect_bone_map(rig.names, rig.parents)
+    det.bone_map.validate(rig.names)
+    for bone, props in det.bone_map.pose_properties.items():
+        for key, value in props.items():
+            obj.pose.bones[bone][key] = value
+    t0 = time.perf_counter()
+    result = rt.retarget(joints, rig, det.bone_map.joints, parent_overrides=det.bone_map.parent_overrides)
+    t_retarget = time.perf_counter() - t0
+    fk = rt.fidelity(result)
+    fps = 20.0  # keep the source rate so Blender's frames line up with the source for the comparison
+    t0 = time.perf_counter()
+    baked = ke.bake_keys(result, ke.BakeOptions(fps=fps, frame_start=1, foot_lock=foot_lock), contacts=contacts)
+    t_bake = time.perf_counter() - t0
+    for bone, mode in baked.rotation_modes.items():
+        obj.pose.bones[bone].rotation_mode = mode
+    write_action(bpy, obj, baked, f"{take}_{name}")
+    frames = baked.frame_start + np.arange(baked.num_frames)
+    bl_joints = blender_joint_positions(bpy, obj, dict(zip(result.joints, result.bones)), frames)
+    bl = rt.fidelity(result, target_joints=bl_joints)
+    # The same keys through our FK: checks the pose convention (rest matrices, parents, quaternions, location).
+    quats, root_loc = ke.baked_pose(baked, result)
+    played = rt.RetargetResult(result.bones, result.joints, quats, result.root_bone, root_loc, result.scale,
+                               fps, result.source_world, result.rig)
+    fk_vs_bl = max(float(np.abs(bl_joints[j] - v).max()) for j, v in played.world_joints().items())
+    reduction_err = max(float(np.abs(played.world_joints()[j] - v).max()) for j, v in result.world_joints().items())
+    return {
+        "rig": name,
+        "take": take,
+        "preset": det.source,
+        "bones": len(rig.names),
+        "frames": result.num_frames,
+        "fk": fk,
+        "blender": bl,
+        "fk_vs_blender_max_m": fk_vs_bl,
+        "reduction_max_m": reduction_err,
+        "fcurve_model_max_err": fcurve_model_error(bpy, obj, baked),
+        "reduction_ratio": baked.stats["reduction_ratio"],
+        "keys": baked.stats["keys"],
+        "retarget_s": t_retarget,
+        "bake_s": t_bake,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--clip", action="append", type=Path, help="Bandai BVH clip(s) as source takes")
+    parser.add_argument("--generated", action="append", default=[], help="also retarget a take generated from this prompt")
+    parser.add_argument("--seconds", type=float, default=4.0)
+    parser.add_argument("--bvh-rig", type=Path, default=DEFAULT_BVH_RIG, help="BVH file imported as a target rig")
+    parser.add_argument("--rigify-generated", action="store_true", help="also generate a Rigify rig (slow)")
+    parser.add_argument("--rigs", default="", help="comma-separated subset of rigs to measure")
+    parser.add_argument("--foot-lock", action="store_true")
+    parser.add_argument("--json", type=Path, help="write the numbers here")
+    args = parser.parse_args(argv)
+    os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="mld_bpy_"))
+
+    import bpy
+
+    takes = {}
+    for clip in args.clip or DEFAULT_CLIPS:
+        takes[clip.stem] = source_from_bvh(clip)
+    for i, prompt in enumerate(args.generated):
+        takes[f"generated{i}"] = source_from_model(prompt, args.seconds, seed=i)
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    rigs = build_rigs(bpy, bvh_rig=args.bvh_rig, rigify_generated=args.rigify_generated)
+    wanted = [r for r in args.rigs.split(",") if r] or list(rigs)
+    rows = []
+    for take, (joints, contacts) in takes.items():
+        for name in wanted:
+            rows.append(measure(bpy, name, rigs[name], joints, contacts, take, foot_lock=args.foot_lock))
+
+    head = f"{'take':36s} {'rig':15s} {'preset':15s} {'eff fk':>7s} {'eff bl':>7s} {'wristL':>7s} {'ankleL':>7s} {'head':>7s} " \
+           f"{'sink':>5s} {'<rest':>5s} {'face°':>5s} {'turn src/rig':>13s} {'trav°':>5s} {'keys':>5s} {'red mm':>6s} {'fk-bl mm':>8s} {'fc err':>8s}"
+    print(head)
+    for r in rows:
+        b = r["blender"]
+        print(
+            f"{r['take'][:36]:36s} {r['rig']:15s} {r['preset']:15s} {r['fk']['effector_err_mean']:7.2%} "
+            f"{b['effector_err_mean']:7.2%} {b['left_wrist_err']:7.2%} {b['left_ankle_err']:7.2%} {b['head_err']:7.2%} "
+            f"{b['sink_cm']:5.2f} {b.get('below_rest_height_cm', float('nan')):5.2f} {b['facing_err_deg']:5.2f} "
+            f"{b['turn_src_deg']:6.1f}/{b['turn_rig_deg']:6.1f} {b['travel_angle_deg']:5.2f} {r['reduction_ratio']:5.2f} "
+            f"{r['reduction_max_m'] * 1000:6.2f} {r['fk_vs_blender_max_m'] * 1000:8.4f} {r['fcurve_model_max_err']:8.1e}"
+        )
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
