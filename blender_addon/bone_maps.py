@@ -230,25 +230,39 @@ def detect_bone_map(
 
     bone_names: the armature's bones; parents: each bone's parent (index or name, -1 / None for roots), used by the
     fuzzy matcher. A preset wins when it maps every required joint (ties: more joints, then more exact names, then
-    preset order). The result may still miss required joints: see ``Detection.missing``.
+    preset order); a preset matching at least half its names but not every required joint is kept and completed
+    by the fuzzy match ("mixamo+auto"). The result may still miss required joints: see ``Detection.missing``.
     """
     names = list(bone_names)
     presets = load_presets() if presets is None else presets
     best = None
+    partial = None
     scores = {}
     for preset in presets.values():
         bmap, exact = apply_preset(preset, names)
         required = sum(j in bmap.joints for j in REQUIRED_JOINTS)
         scores[preset.name] = (len(bmap.joints), required)
+        rank = (len(bmap.joints), exact)
         if required == len(REQUIRED_JOINTS):
-            rank = (len(bmap.joints), exact)
             if best is None or rank > best[0]:
                 best = (rank, bmap)
+        elif len(bmap.joints) >= len(preset.bones) / 2 and (partial is None or rank > partial[0]):
+            partial = (rank, bmap)
     if best is not None:
         return Detection(best[1], best[1].source, scores)
     fuzzy = fuzzy_bone_map(names, parents)
-    # A partial preset can still fill joints the fuzzy match left out (never overriding it).
-    return Detection(fuzzy, "auto", scores)
+    if partial is None:
+        return Detection(fuzzy, "auto", scores)
+    # The rig mostly follows a preset's naming: keep that, fill its gaps from the fuzzy match.
+    base = partial[1]
+    used = set(base.joints.values())
+    for joint, bone in fuzzy.joints.items():
+        if joint not in base.joints and bone not in used:
+            base.joints[joint] = bone
+            used.add(bone)
+    merged = BoneMap(base.joints, source=f"{base.source}+auto", parent_overrides=base.parent_overrides,
+                     pose_properties=base.pose_properties)
+    return Detection(merged, merged.source, scores)
 
 
 _SIDE_WORDS = {"l": "left", "left": "left", "lft": "left", "r": "right", "right": "right", "rgt": "right"}
@@ -369,13 +383,13 @@ def fuzzy_bone_map(bone_names: Sequence[str], parents: Sequence | None = None) -
         thigh = take(f"{side}_hip", first(candidates("thigh", side, exclude=used)))
         shin = take(f"{side}_knee", first(candidates("shin", side, thigh, used))) if thigh is not None else None
         foot = take(f"{side}_ankle", first(candidates("foot", side, shin, used))) if shin is not None else None
-        if foot is not None:
-            take(f"{side}_foot", first(candidates("toe", side, foot, used)))
+        if foot is not None:  # toes by name, else a foot-named bone below the ankle ("left_ankle" > "left_foot")
+            take(f"{side}_foot", first(candidates("toe", side, foot, used) or candidates("foot", side, foot, used)))
         upper = first(candidates("upperarm", side, exclude=used))
         collars = candidates("collar", side, exclude=used)
-        if upper is None:  # "shoulder" naming the upper arm (no separate collar bone)
+        if upper is None:  # "shoulder" naming the upper arm: the collar-like bone nearest the forearm
             with_forearm = [c for c in collars if candidates("forearm", side, c, used)]
-            upper = first(with_forearm)
+            upper = max(with_forearm, key=lambda c: depth[c], default=None)
             collars = [c for c in collars if c != upper]
         take(f"{side}_shoulder", upper)
         if upper is not None:

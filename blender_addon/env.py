@@ -83,17 +83,27 @@ def add_user_site_packages(path: Path | None = None) -> Path | None:
     return Path(path)
 
 
+_found: set[str] = set()
+
+
 def missing_modules(names: tuple[str, ...] = REQUIRED_MODULES) -> list[str]:
-    """Names among ``names`` that cannot be imported (checked with find_spec, nothing is imported)."""
+    """Names among ``names`` that cannot be imported (checked with find_spec, nothing is imported).
+
+    Found modules are remembered (the panel asks on every redraw); missing ones are looked up again, so
+    installing them takes effect without a restart.
+    """
     missing = []
     for name in names:
-        if name in sys.modules:
+        if name in _found or sys.modules.get(name) is not None:
             continue
         try:
-            if importlib.util.find_spec(name) is None:
-                missing.append(name)
+            spec = importlib.util.find_spec(name)
         except (ImportError, ValueError):
+            spec = None
+        if spec is None:
             missing.append(name)
+        else:
+            _found.add(name)
     return missing
 
 

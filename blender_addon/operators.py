@@ -189,6 +189,9 @@ class MLD_OT_install_dependencies(bpy.types.Operator):
         if env.user_site_dir() is None:
             cls.poll_message_set("No user folder for the add-on")
             return False
+        if not getattr(bpy.app, "online_access", True):
+            cls.poll_message_set("Online access is off: allow it in Preferences > System > Network")
+            return False
         return True
 
     def invoke(self, context, event):
@@ -243,12 +246,20 @@ classes = (
 )
 
 
+@bpy.app.handlers.persistent
+def _on_load_pre(*args):
+    runtime.forget_targets()
+
+
 def register():
     for cls in classes:
         bpy.utils.register_class(cls)
+    bpy.app.handlers.load_pre.append(_on_load_pre)
 
 
 def unregister():
+    if _on_load_pre in bpy.app.handlers.load_pre:
+        bpy.app.handlers.load_pre.remove(_on_load_pre)
     runtime.shutdown()
     for cls in reversed(classes):
         bpy.utils.unregister_class(cls)

@@ -580,12 +580,11 @@ def place_source(
             height = world[:, JOINT_INDEX[ankle], 2]
             planted = height <= np.percentile(height, 10) + 1e-9
             src_pitch = float(np.median(_pitch(foot[planted])))
-            pitch = _pitch(foot) + (rig_pitch - src_pitch)
-            horiz = foot[:, :2] / np.maximum(np.linalg.norm(foot[:, :2], axis=-1, keepdims=True), _EPS)
-            length = np.linalg.norm(foot, axis=-1, keepdims=True)
-            new = np.concatenate([horiz * np.cos(pitch)[:, None], -np.sin(pitch)[:, None]], -1) * length
-            ok = np.linalg.norm(foot[:, :2], axis=-1) > 1e-3 * np.maximum(length[:, 0], _EPS)
-            world[ok, JOINT_INDEX[toe]] = world[ok, JOINT_INDEX[ankle]] + new[ok]
+            # Turn the foot about the hips' (horizontal) lateral axis: well defined however steep the foot is.
+            lateral = world[:, JOINT_INDEX["left_hip"]] - world[:, JOINT_INDEX["right_hip"]]
+            lateral[:, 2] = 0.0
+            turn = axis_angle_matrix(normalize(lateral), np.full(len(foot), rig_pitch - src_pitch))
+            world[:, JOINT_INDEX[toe]] = world[:, JOINT_INDEX[ankle]] + np.einsum("tij,tj->ti", turn, foot)
     return world, scale
 
 
@@ -810,8 +809,7 @@ def retarget(
                 h_src, weight = ref
                 h_src = h_src - np.sum(h_src * d, -1, keepdims=True) * d
                 weight = np.where(np.linalg.norm(h_src, axis=-1) < 1e-3, 0.0, weight)
-                theta = signed_angle(normalize(h_cur), normalize(h_src), d)
-                theta = _hysteresis(theta, weight)
+                theta = _twist_angles(h_cur, h_src, weight, d)
                 W = axis_angle_matrix(d, theta) @ W
             if joint == "pelvis" and options.twist and options.match == "effectors":
                 # The hips' lateral axis decides the facing and where the legs hang: match it exactly, and the
@@ -894,16 +892,34 @@ def two_bone_middle(root: np.ndarray, goal: np.ndarray, upper: float, lower: flo
     return root + upper * (cos_a[:, None] * u + np.sqrt(1 - cos_a**2)[:, None] * side)
 
 
-def _hysteresis(theta: np.ndarray, weight: np.ndarray) -> np.ndarray:
-    """Follow the measured twist where it is trustworthy (weight 1), hold the last one where it is not (weight 0)."""
-    out = np.empty_like(theta)
-    confident = np.nonzero(weight > 0.5)[0]
-    prev = float(theta[confident[0]]) if len(confident) else 0.0
-    for t in range(len(theta)):
-        w = float(weight[t])
-        prev = prev + w * float(wrap_angle(theta[t] - prev))
-        out[t] = prev
-    return out
+def _twist_angles(h_cur: np.ndarray, h_src: np.ndarray, weight: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Twist (T,) about ``d`` turning the bone's reference axis ``h_cur`` onto the source's ``h_src``.
+
+    Where the source reference is trustworthy (weight 1) it is followed; where it is not (a straight elbow or knee
+    has no hinge axis), the reference keeps the direction it had the frame before (carried along as the segment
+    turns), so the limb never snaps or flips; in between the two directions are blended.
+    """
+    h_cur = normalize(h_cur)
+    valid = np.linalg.norm(h_src, axis=-1) > 1e-6
+    h_src = normalize(h_src)
+    if np.all(weight >= 1.0) and np.all(valid):
+        return signed_angle(h_cur, h_src, d)
+    T = len(d)
+    theta = np.empty(T)
+    confident = np.nonzero((weight > 0.5) & valid)[0]
+    prev = h_src[confident[0]] if len(confident) else h_cur[0]
+    for t in range(T):
+        dt = d[t]
+        carried = prev - np.dot(prev, dt) * dt
+        n = np.linalg.norm(carried)
+        carried = carried / n if n > 1e-6 else h_cur[t]
+        w = float(weight[t]) if valid[t] else 0.0
+        goal = w * h_src[t] + (1 - w) * carried
+        n = np.linalg.norm(goal)
+        goal = goal / n if n > 1e-6 else (h_src[t] if w >= 0.5 else carried)
+        theta[t] = np.arctan2(np.dot(dt, np.cross(h_cur[t], goal)), np.dot(h_cur[t], goal))
+        prev = goal
+    return theta
 
 
 def quat_continuity(q: np.ndarray) -> np.ndarray:
@@ -931,7 +947,7 @@ FOOT_JOINTS = ("left_ankle", "right_ankle", "left_foot", "right_foot")
 def facing_yaw(left: np.ndarray, right: np.ndarray) -> np.ndarray:
     """Heading (radians, about world Z, 0 = facing -Y) from a left and a right joint (T, 3), unwrapped over time."""
     lat = left - right
-    fwd = np.stack([-lat[..., 1], lat[..., 0]], -1)  # cross(lat, z) in the ground plane
+    fwd = np.stack([lat[..., 1], -lat[..., 0]], -1)  # cross(lat, z) in the ground plane
     yaw = np.arctan2(fwd[..., 0], -fwd[..., 1])
     return np.unwrap(yaw)
 

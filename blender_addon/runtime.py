@@ -148,6 +148,8 @@ def _tick():
         return None
     for job in run.finished():
         target = _targets.pop(job.id, None)
+        if target is None:
+            continue  # submitted before another file was loaded: its armature is not in this file
         level, message = finish_job(job, target)
         if job.state == DONE and level == "INFO":
             try:  # the keys are one undo step
@@ -168,7 +170,8 @@ def _notify(level: str, message: str) -> None:
     if wm is None or not wm.windows:
         return
     try:
-        bpy.ops.mld.report("INVOKE_DEFAULT", level=level, message=message[:500])
+        with bpy.context.temp_override(window=wm.windows[0]):
+            bpy.ops.mld.report("INVOKE_DEFAULT", level=level, message=message[:500])
     except Exception:  # noqa: BLE001 - no window: the panel still shows it
         pass
 
@@ -183,6 +186,13 @@ def tag_redraw() -> None:
         for area in window.screen.areas:
             if area.type in {"VIEW_3D", "PREFERENCES"}:
                 area.tag_redraw()
+
+
+def forget_targets(*_args) -> None:
+    """Before another file loads: cancel running jobs, their armatures belong to the old file."""
+    if _runner is not None:
+        _runner.cancel_all()
+    _targets.clear()
 
 
 def shutdown() -> None:

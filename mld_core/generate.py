@@ -108,6 +108,10 @@ def run(args) -> int:
     from mld_core.cli import UsageError
     from mld_core.pipeline import MLDPipeline
 
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
     if args.prompt is not None and args.prompts is not None:
         raise UsageError("give a PROMPT or --prompts FILE, not both")
     try:
@@ -184,4 +188,5 @@ def register(groups) -> None:
     p.add_argument("--out", type=Path, required=True, help="OUT.npz")
     p.add_argument("--bvh", type=Path, default=None, help="also write BVH (one file per motion)")
     p.add_argument("--fps", type=int, default=None, help="BVH frame rate (default 20)")
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     p.set_defaults(func=run)

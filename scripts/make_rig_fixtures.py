@@ -6,6 +6,10 @@ Writes canonical.json (the canonical armature built in Blender from retarget.can
 (Rigify's human metarig), rigify.json (the rig Rigify generates from it) and bandai_bvh.json (a Bandai clip
 imported with Blender's own BVH importer at scale 0.01). Each is a RigRest: names, parents, rest matrices
 (bone.matrix_local, armature space), tails and the object's world matrix.
+
+Also writes source_takes.npz: the Bandai fixture clips (tests/fixtures/bandai/*.bvh) as the model's data sees them
+(canonical joints (T, 22, 3) at 20 fps, facing +Z; foot contacts (T, 4)), so retargeting tests need neither torch
+nor the BVH reader.
 """
 
 from __future__ import annotations
@@ -20,12 +24,30 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 
+def write_source_takes(path: Path) -> None:
+    import numpy as np
+
+    from mld_core.data.bandai import clip_joints
+    from mld_core.motion import features as F
+
+    arrays = {}
+    for bvh in sorted((REPO / "tests/fixtures/bandai").glob("*.bvh")):
+        joints = F.canonical_joints(clip_joints(bvh.read_bytes(), source=str(bvh)))
+        contacts = F.joints_to_features(joints)[:, F.FOOT_CONTACT]
+        arrays[f"{bvh.stem}_joints"] = joints.astype(np.float32)
+        arrays[f"{bvh.stem}_contacts"] = np.concatenate([contacts, contacts[-1:]], 0).astype(np.float32)
+    np.savez_compressed(path, **arrays)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--bvh", default=str(REPO / "tests/fixtures/bandai/dataset-1_bye_normal_001.bvh"))
     parser.add_argument("--out", default=str(REPO / "tests/fixtures/rigs"))
     args = parser.parse_args(argv)
     os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="mld_bpy_"))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_source_takes(out / "source_takes.npz")
 
     import bpy  # noqa: I001 - bpy first: it puts addon_utils on the path
     import addon_utils
@@ -33,8 +55,6 @@ def main(argv: list[str] | None = None) -> int:
     from blender_addon import retarget as rt
     from blender_addon import rig_io
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     bpy.ops.wm.read_factory_settings(use_empty=True)
 
     canonical = rig_io.build_armature(rt.canonical_rig(), "canonical")

@@ -2,6 +2,8 @@
 
     python scripts/retarget_fidelity.py [--clip BVH ...] [--generated PROMPT] [--rigify-generated] [--json OUT]
 
+Without --clip / --generated the source takes are the Bandai fixture clips stored in tests/fixtures/rigs/.
+
 For each source take (Bandai clips as the model sees them: 20 fps, canonical skeleton, facing +Z; or a take the
 bundled model generates) and each rig (the canonical armature, Rigify's human metarig, optionally the rig Rigify
 generates from it, and a Bandai clip imported with Blender's own BVH importer at scale 0.01), it detects the bone
@@ -33,10 +35,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-DEFAULT_CLIPS = [
-    REPO / "tests/fixtures/bandai/dataset-2_walk-turn-left_normal_027.bvh",
-    REPO / "tests/fixtures/bandai/dataset-2_wave-right-hand_normal_026.bvh",
-]
+DEFAULT_TAKES = REPO / "tests/fixtures/rigs/source_takes.npz"  # the fixture clips, as the model sees them
 DEFAULT_BVH_RIG = REPO / "tests/fixtures/bandai/dataset-1_bye_normal_001.bvh"
 
 
@@ -215,8 +214,14 @@ def main(argv: list[str] | None = None) -> int:
     import bpy
 
     takes = {}
-    for clip in args.clip or DEFAULT_CLIPS:
+    for clip in args.clip or []:
         takes[clip.stem] = source_from_bvh(clip)
+    if not args.clip and not args.generated:
+        stored = np.load(DEFAULT_TAKES)
+        for key in sorted(stored.files):
+            if key.endswith("_joints"):
+                stem = key[: -len("_joints")]
+                takes[stem] = (stored[key].astype(np.float64), stored[f"{stem}_contacts"].astype(np.float64))
     for i, prompt in enumerate(args.generated):
         takes[f"generated{i}"] = source_from_model(prompt, args.seconds, seed=i)
 

@@ -202,6 +202,30 @@ emit(out)
 """
 
 
+NO_TORCH = r"""
+import sys
+sys.modules["torch"] = None  # Blender's Python without PyTorch
+sys.path.insert(0, {repo!r})
+import bpy, addon_utils
+bpy.ops.wm.read_factory_settings(use_empty=True)
+mod = addon_utils.enable("blender_addon", default_set=True)
+from blender_addon import operators, env
+out = {{"enabled": mod is not None, "missing": env.missing_modules()}}
+out["problem"] = operators.generate_problem(bpy.context)
+out["poll"] = bpy.ops.mld.generate.poll()
+out["create"] = sorted(bpy.ops.mld.create_armature())
+out["problem_with_armature"] = operators.generate_problem(bpy.context)
+emit(out)
+"""
+
+
+def test_registers_without_torch_and_says_how_to_get_it(tmp_path):
+    r = run_bpy_script(NO_TORCH.format(repo=str(REPO)), tmp_path, timeout=120)
+    assert r["enabled"] and "torch" in r["missing"]
+    assert "torch" in r["problem"] and "Install dependencies" in r["problem"] and r["poll"] is False
+    assert r["create"] == ["FINISHED"] and "Install dependencies" in r["problem_with_armature"]
+
+
 def test_plain_package_registers_and_unregisters(tmp_path):
     r = run_bpy_script(PLAIN.format(repo=str(REPO)), tmp_path, timeout=120)
     assert r["enabled"] and r["prefs"] == "MLD_AddonPreferences"

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from blender_addon import batchfile, env, jobs, model_cache, naming, posing, validation
+from blender_addon import batchfile, env, jobs, model_cache, naming, posing
 from blender_addon.validation import RequestError, validate_request
 
 REPO = Path(__file__).resolve().parents[1]

@@ -226,7 +226,7 @@ def test_evaluate_end_to_end_with_a_tiny_pipeline(tmp_path, tiny_evaluator, task
     assert result["order"] == ["Real", "tiny"]
     assert result["pairs_per_replication"] == 16
     rows = result["rows"]
-    expected = {"t2m": {"R@1", "R@2", "R@3", "FID", "MM-Dist", "Diversity", "MultiModality"},
+    expected = {"t2m": {"R@1", "R@2", "R@3", "FID", "MM-Dist", "Diversity", "MultiModality", "Content-Acc"},
                 "vae": {"MPJPE", "MPJPE_global", "PA-MPJPE", "ACCEL", "FID", "Diversity"},
                 "uncond": {"FID", "KID", "Diversity"},
                 "a2m": {"FID", "Accuracy", "Diversity", "MultiModality"}}[task]
@@ -277,3 +277,96 @@ def test_evaluate_rejects_unusable_input(tmp_path, tiny_evaluator):
         c.action = None
     with pytest.raises(ValueError, match="no clip"):
         evaluate("a2m", tiny_evaluator, unlabelled, PipelineGenerator(pipe, SMALL), SMALL, progress=False)
+
+
+def test_mirror_side_accuracy_compares_own_and_mirrored_sided_captions():
+    from types import SimpleNamespace
+
+    from mld_core.eval.train import mirror_side_accuracy
+
+    # motion "side" is encoded in feature 0 (+1 left, -1 right); texts map to +-1 in the same axis
+    def clip(cid, side, text):
+        return Clip(cid, np.full((10, 2), side, np.float32), [Caption(text)], None)
+
+    clips = [clip("a", 1.0, "raise the left hand"), clip("Ma", -1.0, "raise the right hand"),
+             clip("b", -1.0, "turn right"), clip("Mb", 1.0, "turn left"),
+             clip("c", 1.0, "walk forward"), clip("Mc", 1.0, "walk forward")]  # unsided: skipped
+    vec = {"raise the left hand": [1.0, 0.0], "raise the right hand": [-1.0, 0.0], "turn right": [-1.0, 0.0],
+           "turn left": [1.0, 0.0]}
+    stub = SimpleNamespace(config=SimpleNamespace(max_frames=196),
+                           encode_pooled_text=lambda v: np.asarray(v),
+                           encode_motion=lambda ms: np.array([[m[0, 0], 0.0] for m in ms]))
+    lookup = lambda texts: np.array([vec[t] for t in texts])  # noqa: E731
+    assert mirror_side_accuracy(stub, clips, lookup) == (1.0, 4)
+    # an evaluator that swaps sides scores 0
+    swapped = SimpleNamespace(**{**vars(stub), "encode_motion": lambda ms: np.array([[-m[0, 0], 0.0] for m in ms])})
+    assert mirror_side_accuracy(swapped, clips, lookup) == (0.0, 4)
+    assert mirror_side_accuracy(stub, clips[4:], lookup) is None
+
+
+# ----------------------------------------------------------------------------------------------- CLI
+
+
+def write_h3d_folder(root, clips_by_split: dict) -> None:
+    """A HumanML3D-format folder: new_joint_vecs/, texts/, split lists, Mean/Std, actions.json."""
+    (root / "new_joint_vecs").mkdir(parents=True)
+    (root / "texts").mkdir()
+    every = [c for clips in clips_by_split.values() for c in clips]
+    for split, clips in clips_by_split.items():
+        (root / f"{split}.txt").write_text("".join(f"{c.id}\n" for c in clips))
+    for c in every:
+        np.save(root / "new_joint_vecs" / f"{c.id}.npy", c.features)
+        (root / "texts" / f"{c.id}.txt").write_text(
+            "".join(f"{cap.text}#a/DET#{cap.start_s}#{cap.end_s}\n" for cap in c.captions))
+    feats = np.concatenate([c.features for c in every])
+    np.save(root / "Mean.npy", feats.mean(0).astype(np.float32))
+    np.save(root / "Std.npy", (feats.std(0) + 1e-3).astype(np.float32))
+    (root / "actions.json").write_text(json.dumps({"classes": list(CONTENTS), "clips": {c.id: c.action for c in every}}))
+
+
+def test_cli_train_evaluator_then_evaluate_t2m_and_vae(tmp_path, capsys):
+    from mld_core.cli import main
+    from mld_core.testing import tiny_model
+
+    data = tmp_path / "data"
+    clips = synthetic_263(40, 3)
+    write_h3d_folder(data, {"train": clips[:24], "val": clips[24:32], "test": clips[32:]})
+    spec = json.dumps(TINY_TEXT)
+    argv = ["train", "evaluator", "--data", str(data), "--out", str(tmp_path / "ev"), "--epochs", "2",
+            "--hidden", "32", "--layers", "1", "--batch-size", "8", "--text-encoder", spec, "--no-progress"]
+    assert main(argv) == 0
+    assert (tmp_path / "ev" / "EVALUATOR_CARD.md").is_file()
+    assert main(argv) == 2  # refuses to overwrite the run
+    assert "--resume" in capsys.readouterr().err
+    model = tiny_model(tmp_path / "model")
+    out_json = tmp_path / "res" / "t2m.json"
+    argv = ["evaluate", "t2m", "--model", str(model), "--data", str(data), "--evaluator", str(tmp_path / "ev"),
+            "--replications", "2", "--mm-texts", "2", "--mm-repeats", "10", "--json", str(out_json), "--no-progress"]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "| Real" in printed and "| tiny-text" in printed and "R@1" in printed
+    result = json.loads(out_json.read_text())
+    assert result["task"] == "t2m" and result["pairs_per_replication"] == 8
+    assert len(result["rows"]["tiny-text"]["FID"]["values"]) == 2
+    assert main(["evaluate", "vae"] + argv[2:-3] + ["--no-progress"]) == 0
+    assert "MPJPE" in capsys.readouterr().out
+
+
+def test_cli_evaluate_reports_user_errors(tmp_path, capsys):
+    from mld_core.cli import main
+    from mld_core.testing import tiny_model
+
+    assert main(["evaluate", "t2m", "--data", str(tmp_path / "nowhere")]) == 2
+    assert "no such folder" in capsys.readouterr().err
+    data = tmp_path / "data"
+    write_h3d_folder(data, {"train": synthetic_263(4, 0), "test": synthetic_263(4, 1)})
+    assert main(["evaluate", "t2m", "--data", str(data), "--evaluator", str(tmp_path / "none")]) == 2
+    assert "not an evaluator folder" in capsys.readouterr().err
+    ev = tmp_path / "ev"
+    Evaluator(tiny_config(dim=263)).save_pretrained(ev)
+    action_model = tiny_model(tmp_path / "am", cond="action", actions=CONTENTS)
+    assert main(["evaluate", "t2m", "--model", str(action_model), "--data", str(data), "--evaluator", str(ev)]) == 2
+    assert "not text" in capsys.readouterr().err
+    assert main(["train", "evaluator", "--data", str(data), "--out", str(tmp_path / "x"),
+                 "--text-encoder", "{bad"]) == 2
+    assert "not JSON" in capsys.readouterr().err

@@ -23,6 +23,9 @@ def register(groups) -> None:
     p.add_argument("--lr", type=float, default=3e-4)
     p.add_argument("--hidden", type=int, default=None, help="motion encoder width (default 256)")
     p.add_argument("--layers", type=int, default=None, help="motion encoder transformer layers (default 2)")
+    p.add_argument("--ff-dim", type=int, default=None, help="transformer feed-forward width (default 2 x hidden)")
+    p.add_argument("--text-encoder", default=None, metavar="JSON",
+                   help='frozen sentence encoder spec, e.g. \'{"kind": "minilm"}\' (the default)')
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run_train)
 
@@ -87,12 +90,27 @@ def run_train(args: argparse.Namespace) -> int:
     model_cfg = EvaluatorConfig()
     if args.hidden:
         model_cfg.hidden = args.hidden
+        model_cfg.ff_dim = 2 * args.hidden
+    if args.ff_dim:
+        model_cfg.ff_dim = args.ff_dim
+    if args.text_encoder:
+        import json
+
+        try:
+            spec = json.loads(args.text_encoder)
+        except ValueError as exc:
+            raise _usage(f"--text-encoder is not JSON: {exc}") from None
+        if not isinstance(spec, dict) or "kind" not in spec:
+            raise _usage('--text-encoder must be a JSON object with a "kind", e.g. {"kind": "minilm"}')
+        model_cfg.text_encoder = spec
     if args.layers:
         model_cfg.layers = args.layers
+    from mld_core.models.text_encoder import TextEncoderError
+
     try:
         EvaluatorConfig.from_dict(model_cfg.to_dict())
         out = train_evaluator(cfg, model_cfg, resume=args.resume, progress=not args.no_progress)
-    except (FileExistsError, FileNotFoundError, ValueError) as exc:
+    except (FileExistsError, FileNotFoundError, ValueError, TextEncoderError) as exc:
         raise _usage(str(exc)) from None
     print(f"wrote {out}")
     return 0

@@ -6,7 +6,9 @@ embeds everything with the evaluator and computes the task's metrics. A "Real" r
 motions of the same draws. Means and 95% intervals (1.96 * std / sqrt(n)) are over replications.
 
 - t2m: R-precision top-1/2/3 (pools of 32), FID, MM-Dist, Diversity (300 pairs), MultiModality
-  (``mm_texts`` texts x ``mm_repeats`` generations, ``mm_times`` pairs each).
+  (``mm_texts`` texts x ``mm_repeats`` generations, ``mm_times`` pairs each). Extension: when the clips
+  carry action labels, "Content-Acc" is the evaluator's classifier on each motion against the content
+  label of the caption's clip (it tells left from right, which the pooled sentence vector barely does).
 - a2m: FID, action accuracy (evaluator classifier), Diversity (200 pairs), MultiModality (20 same-action
   pairs per action), as ACTOR/MLD. A text model is prompted with ``action_prompt`` filled with the
   action's name.
@@ -38,7 +40,8 @@ TASKS = ("t2m", "a2m", "uncond", "vae")
 # (key, column title, direction) per task; direction: + higher is better, - lower, = closer to Real
 COLUMNS = {
     "t2m": [("R@1", "R@1", "+"), ("R@2", "R@2", "+"), ("R@3", "R@3", "+"), ("FID", "FID", "-"),
-            ("MM-Dist", "MM-Dist", "-"), ("Diversity", "Diversity", "="), ("MultiModality", "MModality", "+")],
+            ("MM-Dist", "MM-Dist", "-"), ("Diversity", "Diversity", "="), ("MultiModality", "MModality", "+"),
+            ("Content-Acc", "Content acc", "+")],
     "a2m": [("FID", "FID", "-"), ("Accuracy", "Accuracy", "+"), ("Diversity", "Diversity", "="),
             ("MultiModality", "MModality", "=")],
     "uncond": [("FID", "FID", "-"), ("KID", "KID", "-"), ("Diversity", "Diversity", "=")],
@@ -336,10 +339,21 @@ def evaluate(task: str, evaluator, clips: Sequence, generator: PipelineGenerator
         if task == "t2m":
             texts = [p.text for p in pairs]
             text_emb = text_embeddings(texts)
-            rows.add("Real", _t2m_scores(evaluator, real_emb, text_emb, ref_emb, settings, np.random.default_rng([rep, 1])))
+            labelled = [i for i, p in enumerate(pairs) if p.action in action_index] if evaluator.config.num_actions else []
+            labels = np.array([action_index[pairs[i].action] for i in labelled])
+
+            def content_acc(feats) -> dict:
+                # extension: the evaluator's classifier on each motion vs the content label of its source clip
+                if not labelled:
+                    return {}
+                return {"Content-Acc": metrics.accuracy(evaluator.classify([feats[i] for i in labelled]), labels)}
+
+            rows.add("Real", {**_t2m_scores(evaluator, real_emb, text_emb, ref_emb, settings,
+                                            np.random.default_rng([rep, 1])), **content_acc(real_feats)})
             gen = generator.text(texts, frames, gen_seed)
             gen_emb = evaluator.encode_motion(gen)
             scores = _t2m_scores(evaluator, gen_emb, text_emb, ref_emb, settings, np.random.default_rng([rep, 1]))
+            scores.update(content_acc(gen))
             if settings.mm_texts > 0 and settings.mm_repeats >= settings.mm_times:
                 pick = rng.choice(len(pairs), min(settings.mm_texts, len(pairs)), replace=False)
                 variants = generator.text_variants([texts[i] for i in pick], [frames[i] for i in pick],

@@ -71,9 +71,11 @@ RAISE_HOLD_S = 0.25
 
 # Waving: while the wrist is raised (above shoulder + WAVE_ABOVE_SHOULDER_M) its sideways position relative
 # to the shoulder (along ``across``) swings back and forth; a swing is a move of >= WAVE_SWING_M against the
-# previous direction (hysteresis). Real wave-* clips: 5th percentile 6 swings; raise-up-* clips: <= 3 swings
-# in 99%, because raising and lowering the arm moves the wrist sideways about once each way.
-WAVE_ABOVE_SHOULDER_M = -0.15
+# previous direction (hysteresis). Raising and lowering an arm moves the wrist sideways about once each way.
+# Swept over height -0.10..-0.30 m, swing 3-4 cm, 3-4 swings: this choice gives wave-* clips 0.97-0.99 and
+# one-hand raise-up-* clips 0.001 false waves (walks 0.07: some styles swing the arms high); lower heights
+# catch a few more of the slow, low "bye" waves but make 15-50% of walks and runs "wave".
+WAVE_ABOVE_SHOULDER_M = -0.10
 WAVE_SWING_M = 0.03
 WAVE_MIN_SWINGS = 4
 
@@ -84,12 +86,18 @@ TURN_MIN_DEG = 45.0
 TURN_WINDOW = 0.2
 
 # Locomotion from the pelvis' horizontal velocity. Standing clips (bow, wave, raise, guide) move the
-# pelvis <= 0.2 m/s on average, the slowest walks 0.38 m/s. Running: a flight phase (no ankle or toe slower
-# than FOOT_STILL_MPS) in >= RUN_MIN_FLIGHT of the frames (walks <= 0.02, runs median 0.49) or a mean speed
-# >= RUN_MIN_SPEED (walks <= 1.94 m/s). Jogs without a flight phase (the "elderly" runs, 1.2-1.5 m/s) read
-# as walks.
+# pelvis <= 0.2 m/s on average, the slowest walks 0.38 m/s. Travel without stepping is a "glide" (a body
+# sliding over the floor, which an undertrained decoder produces): the ankles' fore-aft separation spans
+# < GLIDE_MAX_STRIDE_M over the clip (real walks, runs and walk-backs: >= 0.68 m). Running: a flight phase -
+# no ankle or toe on the ground, i.e. each one both moving >= FOOT_STILL_MPS and higher than
+# FOOT_GROUND_M above the floor (the lowest foot's 5th percentile), so that sliding feet count as grounded -
+# in >= RUN_MIN_FLIGHT of the frames (walks: 0 in every clip; runs: 90% of the clips, dash: all), or a mean
+# speed >= RUN_MIN_SPEED (walks <= 1.94 m/s). Jogs without a flight phase (the "elderly" runs, 1.2-1.5 m/s)
+# read as walks.
 MOVE_MIN_SPEED = 0.3
+GLIDE_MAX_STRIDE_M = 0.3
 FOOT_STILL_MPS = 0.6
+FOOT_GROUND_M = 0.02
 RUN_MIN_FLIGHT = 0.1
 RUN_MIN_SPEED = 2.0
 # Direction of travel relative to the body's own facing (heading 0 = forward, +90 = to the left):
@@ -103,12 +111,13 @@ DRIFT_MIN_DEG = 15.0
 
 # Bow: the spine (pelvis -> neck) leans forward >= BOW_MIN_PITCH_DEG and the head drops >= BOW_MIN_DROP_M
 # relative to the pelvis, held for BOW_HOLD_S, and the head comes back up at least half of the drop later.
-# Real bows: pitch >= 24 degrees, drop >= 0.08 m, all come back up; stand/walk/wave/raise clips: drop
-# <= 0.07 m (guide and call, which lean forward to gesture or shout, pass it).
+# Real bows: pitch >= 24 degrees, drop >= 0.08 m, all come back up, pelvis speed <= 0.2 m/s; runs lean
+# and bob as much, hence the speed limit; guide and call, which lean forward to gesture or shout, pass it.
 BOW_MIN_PITCH_DEG = 20.0
 BOW_MIN_DROP_M = 0.06
 BOW_HOLD_S = 0.15
 BOW_RETURN_FRACTION = 0.5
+BOW_MAX_SPEED = 0.5
 
 # Kick: an ankle >= KICK_MIN_HEIGHT_M above the floor and >= KICK_MIN_FORWARD_M in front of the pelvis
 # (running lifts the heels up to 0.7 m, but behind the body). Real kicks: 1.0 m.
@@ -281,24 +290,31 @@ def _travel(j: np.ndarray, fps: float) -> dict:
     speed = float(np.linalg.norm(v, axis=1).mean())
     fwd = float(np.einsum("tc,tc->t", v, forward[:-1]).mean())
     lat = float(np.einsum("tc,tc->t", v, across[:-1]).mean())
-    feet = np.linalg.norm(np.diff(j[:, [L_ANKLE, L_FOOT, R_ANKLE, R_FOOT]], axis=0), axis=2) * fps  # (T-1, 4)
-    flight = float((feet >= FOOT_STILL_MPS).all(axis=1).mean())
+    feet = j[:, [L_ANKLE, L_FOOT, R_ANKLE, R_FOOT]]  # (T, 4, 3)
+    floor = float(np.percentile(feet[:, :, 1].min(axis=1), 5))
+    moving = np.linalg.norm(np.diff(feet, axis=0), axis=2) * fps >= FOOT_STILL_MPS  # (T-1, 4)
+    raised = feet[1:, :, 1] - floor > FOOT_GROUND_M  # (T-1, 4)
+    flight = float((moving & raised).all(axis=1).mean())
+    stride = float(np.ptp(np.einsum("tc,tc->t", j[:, L_ANKLE] - j[:, R_ANKLE], forward)))
     heading = float(np.degrees(np.arctan2(lat, fwd))) if abs(fwd) + abs(lat) > 1e-9 else 0.0
     return {"speed_mps": speed, "forward_mps": fwd, "lateral_mps": lat, "heading_deg": heading,
-            "flight_fraction": flight}
+            "flight_fraction": flight, "stride_m": stride}
 
 
 def locomotion(joints, fps: float = sk.FPS) -> Check:
-    """How the body travels: "stand", "walk", "run", "backward" or "sideways".
+    """How the body travels: "stand", "walk", "run", "backward", "sideways" or "glide" (moving without steps).
 
     value: mean horizontal pelvis speed (m/s); detail: mean forward / leftward speed in the body's own
-    frame, heading (degrees from the facing, + = left) and the fraction of frames with no foot on the ground.
+    frame, heading (degrees from the facing, + = left), the fraction of frames with no foot on the ground
+    and the range of the ankles' fore-aft separation (m).
     """
     j = _as_joints(joints)
     t = _travel(j, fps)
     h = abs(t["heading_deg"])
     if t["speed_mps"] < MOVE_MIN_SPEED:
         verdict = "stand"
+    elif t["stride_m"] < GLIDE_MAX_STRIDE_M:
+        verdict = "glide"
     elif h >= BACKWARD_MIN_DEG:
         verdict = "backward"
     elif h > FORWARD_MAX_DEG:
@@ -341,8 +357,9 @@ def bow(joints, fps: float = sk.FPS) -> Check:
     drop = _held_max(upright - head, n)
     deepest = int(np.argmin(head))
     returned = bool(drop > 0 and (head[deepest:] >= upright - BOW_RETURN_FRACTION * drop).any()) and deepest < len(j) - 1
-    verdict = bool(held_pitch >= BOW_MIN_PITCH_DEG and drop >= BOW_MIN_DROP_M and returned)
-    return Check(verdict, held_pitch, {"head_drop_m": drop, "returned": returned})
+    speed = float(np.linalg.norm(np.diff(j[:, PELVIS, ::2], axis=0), axis=1).mean() * fps)
+    verdict = bool(held_pitch >= BOW_MIN_PITCH_DEG and drop >= BOW_MIN_DROP_M and returned and speed <= BOW_MAX_SPEED)
+    return Check(verdict, held_pitch, {"head_drop_m": drop, "returned": returned, "speed_mps": speed})
 
 
 def kick(joints, fps: float = sk.FPS) -> Check:
@@ -454,9 +471,15 @@ def side_check_for(label: str) -> str | None:
 
 def detected_side(result: dict, label: str) -> str | None:
     """The side the motion used, read from the check that matters for ``label`` (None for unsided labels).
-    Hands: "left", "right", "both" or "none" (which wrist was raised); turns and drifts: "left", "right", "none"."""
+
+    Hands: "left", "right", "both" or "none": for wave-* the hand(s) that wave, or when none waves the
+    hand(s) raised; for raise-up-* the hand(s) raised. Turns and drifts: "left", "right" or "none"."""
     check = side_check_for(label)
-    return None if check is None else result[check].verdict
+    if check is None:
+        return None
+    if str(label).lower().startswith("wave") and result["waving"].verdict != "none":
+        return result["waving"].verdict
+    return result[check].verdict
 
 
 def mirror_label(label: str) -> str:

@@ -10,7 +10,7 @@ accuracy) is kept. Resumable: the run folder holds ``train_state.pt`` after ever
 from __future__ import annotations
 
 import json
-import os
+import re
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -44,6 +44,7 @@ class EvaluatorTrainConfig:
     action_weight: float = 0.5
     min_frames: int = 20
     val_fraction: float = 0.05  # carved from train when the folder has no val split
+    bucket: bool = True  # batches of similar lengths (less padding; negatives of similar duration)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -132,6 +133,15 @@ def _collate(pairs: list[Pair], model: Evaluator, actions: dict[str, int], text_
     )
 
 
+def _batches(pairs: list[Pair], batch_size: int, rng: np.random.Generator, bucket: bool) -> list[np.ndarray]:
+    """Index batches in random order; with ``bucket``, each batch holds pairs of similar length."""
+    order = rng.permutation(len(pairs))
+    if bucket:
+        order = order[np.argsort([pairs[i].length for i in order], kind="stable")]
+    batches = [order[b : b + batch_size] for b in range(0, len(order), batch_size)]
+    return [batches[i] for i in rng.permutation(len(batches))]
+
+
 def contrastive_loss(text_emb: torch.Tensor, motion_emb: torch.Tensor, groups: torch.Tensor,
                      temperature: float) -> torch.Tensor:
     """Symmetric multi-positive InfoNCE; rows with the same group id (same caption) are positives."""
@@ -171,6 +181,36 @@ def score_pairs(model: Evaluator, pairs: list[Pair], text_vectors, actions: dict
             per_class = [float((logits[y == c].argmax(1) == c).mean()) for c in np.unique(y)]
             out["action_acc_balanced"] = float(np.mean(per_class))
     return out
+
+
+_SIDE = re.compile(r"\b(left|right)\b", re.IGNORECASE)
+
+
+def mirror_side_accuracy(model: Evaluator, clips: list, text_vectors) -> tuple[float, int] | None:
+    """Left/right check on mirrored clip pairs (id and "M" + id): how often a motion is closer to its own
+    sided caption than to the mirrored clip's caption (same caption index, left and right swapped)."""
+    by_id = {c.id: c for c in clips}
+    motions, own, other = [], [], []
+    for c in clips:
+        m = by_id.get("M" + c.id)
+        if c.id.startswith("M") or m is None:
+            continue
+        for a, b in ((c, m), (m, c)):
+            for ca, cb in zip(a.captions, b.captions):
+                if _SIDE.search(ca.text) and ca.text.strip() != cb.text.strip():
+                    motions.append(a.features[: model.config.max_frames])
+                    own.append(ca.text.strip())
+                    other.append(cb.text.strip())
+                    break
+    if not motions:
+        return None
+    try:
+        t_own, t_other = model.encode_pooled_text(text_vectors(own)), model.encode_pooled_text(text_vectors(other))
+    except KeyError:  # a caption without a cached vector (e.g. shorter than min_frames)
+        return None
+    emb = model.encode_motion(motions)
+    closer = np.linalg.norm(emb - t_own, axis=1) < np.linalg.norm(emb - t_other, axis=1)
+    return float(closer.mean()), len(motions)
 
 
 def _selection_score(s: dict) -> float:
@@ -224,9 +264,9 @@ def _train(cfg, model_config, root, out, resume, text_encoder, data, progress, l
     if state is not None:
         model_config = EvaluatorConfig.from_dict(json.loads(state["model_config"]))
         cfg_saved = json.loads(state["train_config"])
+        # the run's settings, except where and how long this invocation runs
         cfg = EvaluatorTrainConfig(**{**cfg_saved, "data": cfg.data, "out": cfg.out, "minutes": cfg.minutes,
-                                      "epochs": max(cfg.epochs, cfg_saved["epochs"]) if cfg.epochs else cfg_saved["epochs"],
-                                      "threads": cfg.threads})
+                                      "epochs": cfg.epochs, "threads": cfg.threads})
     else:
         model_config = model_config or EvaluatorConfig()
         model_config = EvaluatorConfig.from_dict({
@@ -281,11 +321,10 @@ def _train(cfg, model_config, root, out, resume, text_encoder, data, progress, l
         rng = np.random.default_rng([cfg.seed, epoch])
         pairs = draw_pairs(train, rng, min_frames=cfg.min_frames, max_frames=model_config.max_frames,
                            fps=model_config.fps)
-        order = rng.permutation(len(pairs))
         model.train()
         losses = []
-        for b in range(0, len(order), cfg.batch_size):
-            batch = [pairs[i] for i in order[b : b + cfg.batch_size]]
+        for batch_idx in _batches(pairs, cfg.batch_size, rng, cfg.bucket):
+            batch = [pairs[i] for i in batch_idx]
             if len(batch) < 2:
                 continue
             x, lens, tvec, groups, labels = _collate(batch, model, actions, vectors)
@@ -328,6 +367,9 @@ def _train(cfg, model_config, root, out, resume, text_encoder, data, progress, l
         test_pairs = draw_pairs(test, np.random.default_rng(0), min_frames=cfg.min_frames,
                                 max_frames=model_config.max_frames, fps=model_config.fps)
         report["test"] = score_pairs(best_model, test_pairs, vectors, actions)
+        side = mirror_side_accuracy(best_model, test, vectors)
+        if side is not None:
+            report["test"]["side_acc"], report["test"]["side_pairs"] = side
     best_epoch = max(history, key=_selection_score)["epoch"] if history else 0
     card = make_card(model_config, cfg, report, epoch=best_epoch, epochs_run=epoch, root=root,
                      n_train=n_train, minutes=history[-1]["minutes"] if history else 0.0)
@@ -357,6 +399,10 @@ def make_card(model_config: EvaluatorConfig, cfg: EvaluatorTrainConfig, report: 
                f"{f('action_acc')} | {f('action_acc_balanced')} |"
 
     c = model_config
+    test = report.get("test") or {}
+    side_line = (f"Left/right check (mirrored test clips, {test['side_pairs']} motions): the motion is closer to its own "
+                 f"sided caption than to the mirrored one in {100 * test['side_acc']:.1f}% of cases.\n"
+                 if "side_acc" in test else "")
     return f"""# Evaluator card
 
 A small text-motion evaluator for this project's MLD evaluation (FID, R-precision, MM-Dist, Diversity,
@@ -375,7 +421,8 @@ with those of Guo et al.'s HumanML3D evaluator.
   unit embedding.
 - Loss: symmetric InfoNCE (temperature {c.temperature}; identical captions are positives) + {cfg.action_weight} x
   action cross-entropy. AdamW lr {cfg.lr}, batch {cfg.batch_size}, seed {cfg.seed}, {cfg.threads} CPU thread(s);
-  best epoch {epoch} of {epochs_run} by validation R@3 + action accuracy; {minutes:.1f} minutes.
+  best epoch {epoch} of {epochs_run} by validation R@3 + action accuracy; {minutes:.1f} minutes of wall time
+  in all (data loading, sentence vectors, training, validation; on a machine shared with other jobs).
 - Stored as fp16 safetensors (statistics fp32).
 
 ## Scores on real motions (one random caption per clip, R-precision pools of 32)
@@ -385,6 +432,8 @@ with those of Guo et al.'s HumanML3D evaluator.
 {row("val")}
 {row("test")}
 
-Limits: the text side is a pooled sentence embedding, which barely separates left from right
-(cos 0.98 for "left hand"/"right hand" with MiniLM), so R-precision is weak evidence on sidedness.
+{side_line}
+Limits: the frozen sentence encoder's pooled vector barely separates left from right (MiniLM: cos 0.98
+for "waves the left hand" / "waves the right hand"); the trained head has to learn the difference from
+the mirrored clips, so check the left/right line above before trusting R-precision on sidedness.
 """

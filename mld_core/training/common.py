@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import random
 import time
@@ -65,3 +66,25 @@ class Budget:
     @property
     def minutes(self) -> float:
         return (time.monotonic() - self.start) / 60
+
+    def progress(self, step: int) -> float:
+        """How much of the budget is spent, 0..1 (the larger of the step and the time fraction)."""
+        fractions = [0.0]
+        if self.max_steps:
+            fractions.append(step / self.max_steps)
+        if self.max_minutes:
+            fractions.append(self.minutes / self.max_minutes)
+        return min(1.0, max(fractions))
+
+
+def lr_factor(progress: float, decay_start: float, floor: float = 0.1) -> float:
+    """Constant, then a cosine decay to ``floor`` over the last (1 - decay_start) of the budget."""
+    if progress <= decay_start or decay_start >= 1.0:
+        return 1.0
+    t = (progress - decay_start) / (1.0 - decay_start)
+    return floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * min(1.0, t)))
+
+
+def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
+    for group in optimizer.param_groups:
+        group["lr"] = lr

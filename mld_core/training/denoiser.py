@@ -26,7 +26,8 @@ from mld_core.checkpoint import load_config, load_weights, save_json, save_weigh
 from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import DDPMScheduler
-from mld_core.training.common import Budget, balanced_weights, load_train_state, save_train_state, setup_torch
+from mld_core.training.common import (Budget, balanced_weights, load_train_state, lr_factor, save_train_state, set_lr,
+                                     setup_torch)
 from mld_core.training.vae import prepare_run_dir
 
 LATENT_CACHE = "latents.safetensors"
@@ -46,6 +47,7 @@ class DenoiserTrainConfig:
     batch_size: int = 128
     lr: float = 1e-4
     ema_decay: float = 0.999
+    decay_start: float = 0.6  # cosine learning-rate decay over the last 40% of the budget (--steps/--minutes)
     crops_per_clip: int = 8
     balance_power: float = 0.7
     save_every: int = 500
@@ -227,6 +229,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     denoiser.train()
     running = None
     while not budget.done(step):
+        set_lr(opt, cfg.lr * lr_factor(budget.progress(step), cfg.decay_start))
         idx = torch.from_numpy(rng.choice(len(z0_all), size=cfg.batch_size, p=weights))
         z0, L = z0_all[idx], lengths[idx]
         B = len(idx)

@@ -19,7 +19,8 @@ from tqdm import tqdm
 
 from mld_core.checkpoint import ModelConfig, save_json, save_weights, skeleton_info
 from mld_core.models.vae import MotionVAE, VAEConfig
-from mld_core.training.common import Budget, balanced_weights, load_train_state, save_train_state, setup_torch
+from mld_core.training.common import (Budget, balanced_weights, load_train_state, lr_factor, save_train_state, set_lr,
+                                     setup_torch)
 
 
 @dataclass
@@ -35,6 +36,7 @@ class VAETrainConfig:
     min_frames: int = 40
     max_frames: int = 196
     balance_power: float = 0.5
+    decay_start: float = 0.5  # cosine learning-rate decay over the second half of the budget (--steps/--minutes)
     val_every: int = 250
     val_clips: int = 200
     vae: VAEConfig = field(default_factory=VAEConfig)
@@ -129,11 +131,11 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
         raise ValueError(f"{cfg.data}: the train split is empty")
     rng = np.random.default_rng(cfg.seed)
     val = [val[i] for i in sorted(rng.choice(len(val), size=min(cfg.val_clips, len(val)), replace=False))] if val else []
-    sampler = CropSampler(train, mean, std, cfg.min_frames, cfg.max_frames, cfg.frames_per_batch,
-                          cfg.balance_power, cfg.seed)
     vae = MotionVAE(cfg.vae)
     opt = torch.optim.AdamW(vae.parameters(), lr=cfg.lr, weight_decay=0.0)
     step, extra = (load_train_state(out, vae, opt) if resume else (0, {}))
+    sampler = CropSampler(train, mean, std, cfg.min_frames, cfg.max_frames, cfg.frames_per_batch,
+                          cfg.balance_power, cfg.seed + step)
     best = extra.get("best_mpjpe_mm", float("inf"))
     actions = sorted({c.action for c in train if c.action})
     save_json(out / "train_config.json", {**asdict(cfg), "stage": "vae"})
@@ -144,6 +146,7 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
     frames_seen, t0 = 0, time.monotonic()
     while not budget.done(step):
         x, lengths = sampler.sample()
+        set_lr(opt, cfg.lr * lr_factor(budget.progress(step), cfg.decay_start))
         loss, parts = vae.loss(x, lengths)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -152,10 +155,10 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
         step += 1
         frames_seen += x.shape[0] * x.shape[1]
         bar.update(1)
-        bar.set_postfix(loss=f"{float(loss):.4f}", kl=f"{parts['kl']:.1f}", fps=f"{frames_seen / (time.monotonic() - t0):.0f}")
+        bar.set_postfix(loss=f"{loss.item():.4f}", kl=f"{parts['kl']:.1f}", fps=f"{frames_seen / (time.monotonic() - t0):.0f}")
         last = budget.done(step)
         if step % cfg.val_every == 0 or last:
-            record = {"step": step, "loss": float(loss), **parts, "minutes": round(budget.minutes, 2)}
+            record = {"step": step, "loss": loss.item(), **parts, "minutes": round(budget.minutes, 2)}
             if val:
                 record["val_mpjpe_mm"] = validate_mpjpe(vae, val, mean, std, cfg.vae.max_frames)
                 bar.write(f"step {step}: val root-relative MPJPE {record['val_mpjpe_mm']:.1f} mm")

@@ -1,0 +1,125 @@
+"""Benchmark the add-on in bpy: model load, Generate -> keys on the canonical rig, key writing alone.
+
+    python scripts/bench_addon.py [--model DIR] [--seconds 4] [--steps 50] [--repeat 5] [--threads N]
+
+Prints numbers (targets: load <= 2 s, Generate -> keys <= 0.5 s for one 4 s prompt with the model loaded,
+key writing <= 10 ms). Without --model it uses the bundled default model, or a tiny random model when none
+is bundled (then only the add-on's own overhead is meaningful). Not a test: nothing is asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+
+def median_time(fn, repeat: int) -> tuple[float, float]:
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), min(times)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", help="model folder (default: bundled, else a tiny random one)")
+    parser.add_argument("--seconds", type=float, default=4.0)
+    parser.add_argument("--steps", type=int, default=50)
+    parser.add_argument("--repeat", type=int, default=5)
+    parser.add_argument("--threads", type=int, default=0)
+    parser.add_argument("--fps", type=int, default=24, help="scene frame rate (keys are resampled to it)")
+    args = parser.parse_args(argv)
+    os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="mld_bench_user_"))
+
+    t0 = time.perf_counter()
+    import torch
+
+    t_torch = time.perf_counter() - t0
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    t0 = time.perf_counter()
+    import bpy
+
+    t_bpy = time.perf_counter() - t0
+
+    import blender_addon
+    from blender_addon import env, keys, posing, rig, runtime
+
+    model_dir = args.model
+    note = ""
+    if model_dir is None and env.bundled_model_dir() is None:
+        from mld_core.testing import tiny_model
+
+        model_dir = str(tiny_model(Path(tempfile.mkdtemp(prefix="mld_bench_")) / "tiny"))
+        note = " (no bundled model: a TINY RANDOM model, so only the add-on overhead is meaningful)"
+    if model_dir:
+        os.environ["MLD_MODEL_DIR"] = str(model_dir)
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    blender_addon.register()
+    try:
+        scene = bpy.context.scene
+        scene.render.fps = args.fps
+        obj = rig.create_canonical_armature(bpy.context, body=False)
+        scene.mld_motion.target = obj
+        s = scene.mld_motion
+        s.prompt, s.seconds, s.steps, s.seed = "a person walks forward and waves with the right hand", args.seconds, args.steps, 0
+
+        t0 = time.perf_counter()
+        pipe = runtime.cache().get(model_dir, "cpu", args.threads)
+        t_load = time.perf_counter() - t0
+        # warm-up (first call pays one-off allocations)
+        bpy.ops.mld.generate()
+
+        gen_med, gen_min = median_time(lambda: bpy.ops.mld.generate(), args.repeat)
+
+        # split: pipeline alone, rotations, pose math, key writing
+        out = pipe([s.prompt], seconds=args.seconds, num_inference_steps=args.steps, seed=0)
+        pipe_med, _ = median_time(lambda: pipe([s.prompt], seconds=args.seconds, num_inference_steps=args.steps, seed=0), args.repeat)
+        from mld_core.motion.rotations import features_to_rotations
+
+        n = int(out.lengths[0])
+        feats = out.features[0, :n]
+        rot_med, _ = median_time(lambda: features_to_rotations(feats), args.repeat)
+        quats, _root = features_to_rotations(feats)
+        rest = rig.rig_rest(obj)
+        fps = scene.render.fps / scene.render.fps_base
+        pose_med, _ = median_time(lambda: posing.pose_channels(quats, out.joints[0, :n], rest, dst_fps=fps), args.repeat)
+        channels = posing.pose_channels(quats, out.joints[0, :n], rest, dst_fps=fps)
+        created = []
+
+        def write():
+            created.append(keys.channels_to_action(obj, channels, "bench", assign=False))
+
+        key_med, key_min = median_time(write, max(args.repeat, 10))
+        n_keys = channels.frames * (4 * 22 + 3 * len(channels.keyed_locations))
+        for action in created:
+            bpy.data.actions.remove(action)
+    finally:
+        blender_addon.unregister()
+
+    print(f"model: {getattr(pipe, 'model_id', '?')}{note}")
+    print(f"cpu threads: {torch.get_num_threads()}, scene {args.fps} fps, {args.seconds:g} s prompt, {args.steps} steps")
+    print(f"import torch                         {t_torch:7.3f} s")
+    print(f"import bpy                           {t_bpy:7.3f} s")
+    print(f"model load (cached afterwards)       {t_load:7.3f} s   target <= 2 s")
+    print(f"Generate -> keys (operator, loaded)  {gen_med:7.3f} s   (min {gen_min:.3f})   target <= 0.5 s")
+    print(f"  pipeline (text, DDIM, decode)      {pipe_med:7.3f} s")
+    print(f"  features -> rotations              {rot_med * 1e3:7.1f} ms")
+    print(f"  pose channels (+ resample)         {pose_med * 1e3:7.1f} ms")
+    print(f"  key writing ({n_keys} keys)         {key_med * 1e3:7.1f} ms   (min {key_min * 1e3:.1f})   target <= 10 ms")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

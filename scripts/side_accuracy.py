@@ -1,0 +1,504 @@
+"""Does a model do what a user notices first? Side, gesture and rare-content accuracy by physical checks.
+
+    .venv/bin/python scripts/side_accuracy.py --model DIR --data DIR [--seeds 4] [--seconds 4] [--clip-length]
+        [--prompts paraphrase|captions|both] [--contents raise-up-left-hand,...] [--max-clips 16]
+        [--steps N] [--guidance G] [--batch 32] [--threads N] [--json OUT.json] [--real-only] [--vae-recon]
+
+For the test-split clips of the sided contents (raise-up-*, wave-*, walk-turn-*, walk-left/right), the rare
+ones (bow, kick, walk-back, dash, bye, ...) and walk/run, it generates motions with the pipeline from
+  (a) the clips' own test captions ("captions": seed k uses caption k of each clip), and
+  (b) hand-written paraphrases per content, never seen in training ("paraphrase"),
+at ``--seconds`` (default 4) and/or at each clip's own length (``--clip-length``), ``--seeds`` seeds each,
+and scores them with mld_core.eval.physical: the pass rate of the content's checks, the side accuracy (the
+detected side equals the named side: raised wrist for hands, facing change for turns, travel direction for
+walk-left/right) and the opposite-side rate. The same numbers for the real clips are the ceiling.
+Contents with no test clip (kick, respond, slash) fall back to their clips in the other splits (marked '*').
+``--real-only`` scores only the real clips (no model needed): the calibration of the checks.
+``--vae-recon`` also encodes each chosen clip with the model's VAE and decodes it at its own length and at
+``--seconds`` (rows "vae-recon@..."): does a latent keep its gesture when decoded to another length? It works
+on a folder with only a VAE (then nothing is generated from text).
+Prints a table; ``--json`` writes every number. Assert nothing: a measurement, not a test.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from mld_core.eval import physical  # noqa: E402
+from mld_core.motion.features import mirror_text  # noqa: E402
+
+SIDED = ("raise-up-left-hand", "raise-up-right-hand", "raise-up-both-hands", "wave-left-hand", "wave-right-hand",
+         "wave-both-hands", "walk-turn-left", "walk-turn-right")
+RARE = ("bow", "kick", "walk-back", "walk-left", "walk-right", "dash", "bye", "byebye", "respond", "slash")
+COMMON = ("walk", "run")
+DEFAULT_CONTENTS = SIDED + RARE + COMMON
+
+# Hand-written paraphrases, worded unlike the template captions of the prepared data. The right-side
+# versions are the left ones mirrored (mirror_text), so both sides are asked in the same words.
+_LEFT_PARAPHRASES = {
+    "raise-up-left-hand": [
+        "someone lifts their left arm above the head",
+        "a person puts the left hand up high and brings it down",
+        "the man reaches up towards the sky with his left hand",
+        "a woman holds her left arm straight up in the air",
+    ],
+    "wave-left-hand": [
+        "someone waves hello with their left hand",
+        "a person greets a friend by waving the left hand",
+        "the man lifts his left hand and waves it from side to side",
+        "a woman waves at someone across the room with her left hand",
+    ],
+    "walk-turn-left": [
+        "someone walks forward and turns to the left",
+        "a person walks ahead, then changes direction to their left",
+        "the man walks and takes a left turn",
+        "a woman strolls forward and veers off to the left",
+    ],
+    "walk-left": [
+        "someone walks forward diagonally to the left without turning",
+        "a person walks ahead while drifting to their left",
+    ],
+}
+PARAPHRASES = {
+    **_LEFT_PARAPHRASES,
+    **{physical.mirror_label(k): [mirror_text(p) for p in v] for k, v in _LEFT_PARAPHRASES.items()},
+    "raise-up-both-hands": [
+        "someone lifts both arms above the head",
+        "a person throws both hands up in the air",
+        "the man reaches up high with both arms and lowers them",
+        "a woman holds both arms up over her head",
+    ],
+    "wave-both-hands": [
+        "someone waves both hands above the head",
+        "a person greets someone by waving both arms in the air",
+        "the man raises both hands and waves them from side to side",
+        "a woman waves both of her hands at a friend",
+    ],
+    "bow": [
+        "someone bows politely",
+        "a person bends forward at the waist to bow, then stands up straight",
+        "the man takes a deep bow",
+        "a woman bows her head and upper body to greet someone",
+    ],
+    "kick": [
+        "someone kicks high with the right leg",
+        "a person does a high kick",
+        "the man kicks forward as in martial arts",
+    ],
+    "walk-back": [
+        "someone walks backwards",
+        "a person steps backward several times while facing forward",
+        "the man backs up slowly",
+        "a woman retreats by walking backwards",
+    ],
+    "dash": [
+        "someone sprints ahead as fast as they can",
+        "a person dashes forward at top speed",
+    ],
+    "bye": [
+        "someone says goodbye by waving one hand",
+        "a person waves farewell with the right hand",
+    ],
+    "byebye": [
+        "someone says goodbye by waving both hands",
+        "a person waves farewell with both arms",
+    ],
+    "respond": [
+        "someone raises a hand high to answer a question",
+        "a person puts the left hand up to reply",
+    ],
+    "slash": [
+        "someone swings a sword down from above the head with both hands",
+        "a person lifts an imaginary blade overhead and cuts downward",
+    ],
+    "walk": [
+        "someone walks forward",
+        "a person strolls straight ahead",
+        "the man walks at a normal pace",
+        "a woman takes a walk in a straight line",
+    ],
+    "run": [
+        "someone runs forward",
+        "a person jogs straight ahead",
+        "the man runs at a steady pace",
+        "a woman runs in a straight line",
+    ],
+}
+
+
+# ---- data --------------------------------------------------------------------------------------------------
+
+
+def _ids(root: Path, split: str) -> list[str]:
+    path = root / f"{split}.txt"
+    return [s.strip() for s in path.read_text(encoding="utf-8").splitlines() if s.strip()] if path.exists() else []
+
+
+def _joints_of(root: Path, cid: str) -> np.ndarray:
+    path = root / "new_joints" / f"{cid}.npy"
+    if path.exists():
+        return np.load(path).astype(np.float32)
+    from mld_core.motion.features import features_to_joints
+
+    return np.asarray(features_to_joints(np.load(root / "new_joint_vecs" / f"{cid}.npy").astype(np.float32)))
+
+
+def load_clips(root: Path, contents: list[str], fps: float = 20.0) -> dict[str, list[dict]]:
+    """{content: [{"id", "joints", "captions", "seconds", "split"}]} from the test split, or from the other
+    splits for a content with no test clip."""
+    from mld_core.data.dataset import read_actions, read_captions
+
+    actions = read_actions(root)
+    if actions is None:
+        raise SystemExit(f"{root} has no actions.json: the content labels are needed")
+    labels = actions["clips"]
+    test = _ids(root, "test")
+    others = [i for s in ("train", "val") for i in _ids(root, s)]
+    out: dict[str, list[dict]] = {}
+    for content in contents:
+        split, ids = "test", [i for i in test if labels.get(i) == content]
+        if not ids:
+            split, ids = "train/val", [i for i in others if labels.get(i) == content]
+        clips = []
+        for cid in sorted(ids):
+            try:
+                joints = _joints_of(root, cid)
+                caps = [c.text for c in read_captions(root / "texts" / f"{cid}.txt")]
+            except OSError as exc:
+                print(f"skipping {cid}: {exc}", file=sys.stderr)
+                continue
+            clips.append({"id": cid, "joints": joints, "captions": caps or [content.replace("-", " ")],
+                          "seconds": len(joints) / fps, "split": split,
+                          "features": root / "new_joint_vecs" / f"{cid}.npy"})
+        out[content] = clips
+    return out
+
+
+def _spread(items: list, n: int) -> list:
+    """Up to n items evenly spaced over the list (deterministic)."""
+    if n <= 0 or len(items) <= n:
+        return list(items)
+    return [items[k] for k in np.linspace(0, len(items) - 1, n).round().astype(int)]
+
+
+# ---- scoring -----------------------------------------------------------------------------------------------
+
+
+class Tally:
+    def __init__(self):
+        self.n = 0
+        self.passed = 0
+        self.sided = 0
+        self.side_ok = 0
+        self.opposite = 0
+        self.failed = defaultdict(int)
+
+    def add(self, joints: np.ndarray, content: str, fps: float) -> None:
+        result = physical.classify(joints, fps)
+        failed = physical.failed_checks(joints, content, result, fps)
+        self.n += 1
+        self.passed += not failed
+        for name in failed:
+            self.failed[name] += 1
+        side = physical.side_of(content)
+        if side is not None:
+            got = physical.detected_side(result, content)
+            self.sided += 1
+            self.side_ok += got == side
+            self.opposite += got == ("right" if side == "left" else "left")
+
+    def merge(self, other: "Tally") -> None:
+        self.n += other.n
+        self.passed += other.passed
+        self.sided += other.sided
+        self.side_ok += other.side_ok
+        self.opposite += other.opposite
+        for k, v in other.failed.items():
+            self.failed[k] += v
+
+    def as_dict(self) -> dict:
+        return {
+            "n": self.n,
+            "pass_rate": self.passed / self.n if self.n else None,
+            "side_n": self.sided,
+            "side_accuracy": self.side_ok / self.sided if self.sided else None,
+            "opposite_side": self.opposite / self.sided if self.sided else None,
+            "failed_checks": dict(self.failed),
+        }
+
+
+# ---- generation --------------------------------------------------------------------------------------------
+
+
+def build_requests(clips: dict, modes: list[str], lengths: list, seeds: int, max_clips: int,
+                   lo: float, hi: float) -> list[dict]:
+    """One request per (content, prompt source, length mode, prompt); each is generated with ``seeds`` seeds."""
+    reqs = []
+    for content, cl in clips.items():
+        chosen = _spread(cl, max_clips)
+        for length in lengths:
+            if "captions" in modes:
+                for c in chosen:
+                    secs = c["seconds"] if length == "clip" else float(length)
+                    # one request per seed so that seed k uses caption k of the clip
+                    for k in range(seeds):
+                        reqs.append({"content": content, "source": "captions", "length": length,
+                                     "prompt": c["captions"][k % len(c["captions"])],
+                                     "seconds": float(np.clip(secs, lo, hi)), "seed": k, "variants": 1})
+            if "paraphrase" in modes and content in PARAPHRASES:
+                own = [c["seconds"] for c in cl] or [4.0]
+                for p, prompt in enumerate(PARAPHRASES[content]):
+                    secs = own[p % len(own)] if length == "clip" else float(length)
+                    reqs.append({"content": content, "source": "paraphrase", "length": length, "prompt": prompt,
+                                 "seconds": float(np.clip(secs, lo, hi)), "seed": 0, "variants": seeds})
+    return reqs
+
+
+def generate(pipe, reqs: list[dict], batch: int, steps: int | None, guidance: float | None, fps: float,
+             tallies: dict) -> float:
+    """Run the requests through the pipeline in batches (grouped by seed/variants) and tally the results."""
+    from tqdm import tqdm
+
+    cond = pipe.denoiser.config.cond if pipe.denoiser is not None else "none"
+    groups = defaultdict(list)
+    for r in reqs:
+        groups[(r["seed"], r["variants"])].append(r)
+    total = sum(r["variants"] for r in reqs)
+    t0 = time.perf_counter()
+    with tqdm(total=total, desc="generating", unit="motion") as bar:
+        for (seed, variants), rs in groups.items():
+            per = max(1, batch // variants)
+            for a in range(0, len(rs), per):
+                chunk = rs[a:a + per]
+                kwargs = dict(seconds=[r["seconds"] for r in chunk], seed=seed, num_variants=variants,
+                              num_inference_steps=steps, guidance_scale=guidance)
+                if cond == "action":
+                    out = pipe([r["content"] for r in chunk], actions=[r["content"] for r in chunk], **kwargs)
+                else:
+                    out = pipe([r["prompt"] for r in chunk], **kwargs)
+                for row in range(len(out.lengths)):
+                    r = chunk[row // variants]
+                    joints = out.joints[row, : int(out.lengths[row])]
+                    tallies[(r["source"], r["length"])][r["content"]].add(joints, r["content"], fps)
+                bar.update(len(out.lengths))
+    return time.perf_counter() - t0
+
+
+def vae_reconstruct(pipe, clips: dict, lengths: list, max_clips: int, batch: int, fps: float,
+                    tallies: dict) -> float:
+    """Encode each chosen clip (its first max_frames frames) to the VAE mean and decode it at each length."""
+    import torch
+
+    from tqdm import tqdm
+
+    max_frames = pipe.config.vae.max_frames
+    items = [(content, c) for content, cl in clips.items() for c in _spread(cl, max_clips) if c["features"].exists()]
+    t0 = time.perf_counter()
+    with torch.inference_mode(), tqdm(total=len(items) * len(lengths), desc="vae recon", unit="motion") as bar:
+        for a in range(0, len(items), batch):
+            chunk = items[a:a + batch]
+            feats = [np.load(c["features"]).astype(np.float32)[:max_frames] for _, c in chunk]
+            n = torch.tensor([len(f) for f in feats])
+            x = np.zeros((len(feats), int(n.max()), feats[0].shape[1]), np.float32)  # (B, T, F)
+            for i, f in enumerate(feats):
+                x[i, : len(f)] = pipe.normalize(f)
+            mu, _ = pipe.vae.encode(torch.from_numpy(x).to(pipe.device), n.to(pipe.device))  # (B, n, d)
+            z = (mu - pipe.config.latent_mean) * pipe.config.latent_scale
+            for length in lengths:
+                if length == "clip":
+                    out_n = n
+                else:
+                    out_n = torch.full_like(n, pipe.frames_for(float(np.clip(length, pipe.min_seconds, pipe.max_seconds))))
+                out = pipe.latents_to_features(z, out_n.to(pipe.device))
+                joints = pipe.joints_from_features(out, out_n.tolist())
+                for i, (content, _) in enumerate(chunk):
+                    tallies[("vae-recon", length)][content].add(joints[i, : int(out_n[i])], content, fps)
+                bar.update(len(chunk))
+    return time.perf_counter() - t0
+
+
+# ---- report ------------------------------------------------------------------------------------------------
+
+
+def _fmt(x) -> str:
+    return "   -" if x is None else f"{x:4.2f}"
+
+
+def summarise(per_content: dict[str, "Tally"], contents: list[str]) -> dict:
+    """Overall numbers: mean pass rate over contents (macro), pooled pass rate and pooled side accuracy."""
+    groups = {"sided": [c for c in contents if c in SIDED], "rare": [c for c in contents if c in RARE],
+              "all": list(contents)}
+    out = {}
+    for name, cs in groups.items():
+        pooled = Tally()
+        rates = []
+        for c in cs:
+            t = per_content.get(c)
+            if t is None or t.n == 0:
+                continue
+            pooled.merge(t)
+            rates.append(t.passed / t.n)
+        d = pooled.as_dict()
+        d["mean_pass_rate"] = float(np.mean(rates)) if rates else None
+        d["contents"] = len(rates)
+        out[name] = d
+    return out
+
+
+def print_table(report: dict, contents: list[str]) -> None:
+    cols = [k for k in report["generated"]]
+    head = f"{'content':22s} {'real n':>6s} {'pass':>4s} {'side':>4s}"
+    for k in cols:
+        head += f" | {k:>21s}"
+    print()
+    if cols:
+        print(" " * 39 + "".join(f" | {'n pass side  opp':>21s}" for _ in cols))
+    print(head)
+    print("-" * len(head))
+    real = report["real"]["contents"]
+    for c in contents:
+        r = real.get(c)
+        if r is None:
+            continue
+        star = "*" if report["real"]["splits"].get(c) != "test" else " "
+        line = f"{c:21s}{star} {r['n']:6d} {_fmt(r['pass_rate'])} {_fmt(r['side_accuracy'])}"
+        for k in cols:
+            g = report["generated"][k]["contents"].get(c)
+            if g is None or g["n"] == 0:
+                line += f" | {'':>21s}"
+            else:
+                line += f" | {g['n']:6d} {_fmt(g['pass_rate'])} {_fmt(g['side_accuracy'])} {_fmt(g['opposite_side'])}"
+        print(line)
+    print("-" * len(head))
+    for name in ("sided", "rare", "all"):
+        r = report["real"]["overall"][name]
+        line = f"{'mean/pooled: ' + name:22s} {r['n']:6d} {_fmt(r['mean_pass_rate'])} {_fmt(r['side_accuracy'])}"
+        for k in cols:
+            g = report["generated"][k]["overall"][name]
+            line += f" | {g['n']:6d} {_fmt(g['mean_pass_rate'])} {_fmt(g['side_accuracy'])} {_fmt(g['opposite_side'])}"
+        print(line)
+    print("\npass = the content's physical checks pass (mean over contents in the overall rows); side = the named side "
+          "was used (pooled); opp = the opposite side alone was used; * = no test clip, clips from train/val.")
+
+
+def _write_json(path: Path, data: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            json.dump(data, f, indent=1)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--model", default=None, help="model folder (default: the bundled default model)")
+    ap.add_argument("--data", required=True, help="HumanML3D-format folder with actions.json (Bandai Namco)")
+    ap.add_argument("--seeds", type=int, default=4)
+    ap.add_argument("--seconds", type=float, default=None, help="generated length (default 4 unless --clip-length)")
+    ap.add_argument("--clip-length", action="store_true", help="also/instead generate at each clip's own length")
+    ap.add_argument("--prompts", choices=("paraphrase", "captions", "both"), default="both")
+    ap.add_argument("--contents", default=",".join(DEFAULT_CONTENTS), help="comma-separated content labels")
+    ap.add_argument("--max-clips", type=int, default=16, help="test clips per content used for captions (0 = all)")
+    ap.add_argument("--steps", type=int, default=None, help="DDIM steps (default: the model's)")
+    ap.add_argument("--guidance", type=float, default=None, help="guidance scale (default: the model's)")
+    ap.add_argument("--batch", type=int, default=32, help="motions per pipeline call")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads")
+    ap.add_argument("--json", type=Path, default=None, help="write every number here")
+    ap.add_argument("--real-only", action="store_true", help="score only the real clips (no model)")
+    ap.add_argument("--vae-recon", action="store_true",
+                    help="also score VAE reconstructions at the clip's own length and at --seconds")
+    args = ap.parse_args(argv)
+
+    contents = [c.strip() for c in args.contents.split(",") if c.strip()]
+    unknown = [c for c in contents if physical.expected_for(c) is None]
+    if unknown:
+        ap.error(f"no physical check for {', '.join(unknown)}; checked contents: {', '.join(physical.CHECKED_LABELS)}")
+    if args.seeds < 1:
+        ap.error("--seeds must be >= 1")
+    root = Path(args.data)
+    if not root.is_dir():
+        ap.error(f"data folder {root} does not exist")
+    fps = 20.0
+    clips = load_clips(root, contents, fps)
+    contents = [c for c in contents if clips[c] or c in PARAPHRASES]
+
+    real = {}
+    for c in contents:
+        t = Tally()
+        for clip in clips[c]:
+            t.add(clip["joints"], c, fps)
+        real[c] = t
+    report = {
+        "data": str(root),
+        "real": {"contents": {c: t.as_dict() for c, t in real.items() if t.n},
+                 "splits": {c: (clips[c][0]["split"] if clips[c] else None) for c in contents},
+                 "overall": summarise(real, contents)},
+        "generated": {},
+    }
+
+    if not args.real_only:
+        import torch
+
+        from mld_core.pipeline import MLDPipeline
+
+        if args.threads:
+            torch.set_num_threads(args.threads)
+        t0 = time.perf_counter()
+        pipe = MLDPipeline.from_pretrained(args.model)
+        print(f"loaded {pipe.model_id} in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+        lengths = []
+        if args.seconds is not None or not args.clip_length:
+            lengths.append(float(args.seconds if args.seconds is not None else 4.0))
+        if args.clip_length:
+            lengths.append("clip")
+        tallies = defaultdict(lambda: defaultdict(Tally))
+        seconds = 0.0
+        cond = pipe.denoiser.config.cond if pipe.denoiser is not None else None
+        if args.vae_recon:
+            recon_lengths = list(dict.fromkeys(["clip", *lengths]))
+            seconds += vae_reconstruct(pipe, clips, recon_lengths, args.max_clips, args.batch, fps, tallies)
+        if cond is None and not args.vae_recon:
+            raise SystemExit(f"{args.model} holds only a VAE: use --vae-recon (or --real-only)")
+        if cond is not None:
+            modes = ["paraphrase", "captions"] if args.prompts == "both" else [args.prompts]
+            if cond == "action":
+                modes = ["captions"]  # the prompt text is not used: one "action" row per clip and seed
+            reqs = build_requests(clips, modes, lengths, args.seeds, args.max_clips, pipe.min_seconds,
+                                  pipe.max_seconds)
+            seconds += generate(pipe, reqs, args.batch, args.steps, args.guidance, fps, tallies)
+        n = sum(t.n for per in tallies.values() for t in per.values())
+        print(f"generated and scored {n} motions in {seconds:.1f} s ({seconds / max(n, 1):.3f} s each)",
+              file=sys.stderr)
+        for (source, length), per in sorted(tallies.items(), key=lambda kv: (kv[0][0], str(kv[0][1]))):
+            name = f"{'action' if cond == 'action' and source != 'vae-recon' else source}@" \
+                   f"{'clip' if length == 'clip' else f'{length:g}s'}"
+            report["generated"][name] = {"contents": {c: t.as_dict() for c, t in per.items()},
+                                         "overall": summarise(per, contents)}
+        report.update(model=str(args.model or "default"), model_id=pipe.model_id, seeds=args.seeds,
+                      steps=args.steps, guidance=args.guidance, max_clips=args.max_clips, generation_s=seconds)
+
+    print_table(report, contents)
+    if args.json is not None:
+        _write_json(args.json, report)
+        print(f"wrote {args.json}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,387 @@
+"""Physical checks (mld_core.eval.physical) on synthetic motions built from a real standing pose, on their
+mirror images, and on the real Bandai Namco fixture clips; plus a smoke run of scripts/side_accuracy.py."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+
+import numpy as np
+import pytest
+
+from mld_core.eval import physical as P
+from mld_core.motion.features import mirror_joints
+
+FPS = 20
+ARM = {"left": (16, 18, 20), "right": (17, 19, 21)}  # shoulder, elbow, wrist
+UPPER_BODY = [3, 6, 9, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21]
+LEGS = {"left": (4, 7, 10), "right": (5, 8, 11)}  # knee, ankle, foot
+
+
+@pytest.fixture(scope="module")
+def rest(request) -> np.ndarray:
+    """Frame 0 of HumanML3D's sample 012314: a real person standing, arms down, facing +Z, left on +X."""
+    from pathlib import Path
+
+    path = Path(request.config.rootpath) / "tests" / "fixtures" / "humanml3d" / "new_joints_012314.npy"
+    pose = np.load(path)[0].astype(np.float64)  # (22, 3)
+    assert pose[1, 0] > pose[2, 0] and pose[16, 0] > pose[17, 0]  # left hip and shoulder on +X
+    return pose
+
+
+def still(pose: np.ndarray, seconds: float = 4.0) -> np.ndarray:
+    return np.repeat(pose[None], int(seconds * FPS), axis=0)  # (T, 22, 3)
+
+
+def rot_y(deg):
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_x(deg):
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_z(deg):
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def ramp(T: int, up: tuple[float, float], down: tuple[float, float] | None = None) -> np.ndarray:
+    """0 -> 1 between seconds up[0]..up[1], back to 0 between down[0]..down[1] (T,)."""
+    t = np.arange(T) / FPS
+    a = np.clip((t - up[0]) / (up[1] - up[0]), 0, 1)
+    if down is not None:
+        a = a * (1 - np.clip((t - down[0]) / (down[1] - down[0]), 0, 1))
+    return a
+
+
+def raise_arm(joints: np.ndarray, side: str, amount: np.ndarray) -> np.ndarray:
+    """Swing the arm sideways and up about its shoulder: amount 1 = pointing straight up (per frame)."""
+    out = joints.copy()
+    sh, el, wr = ARM[side]
+    sign = 1.0 if side == "left" else -1.0  # left arm goes up through +X, right through -X
+    for t, a in enumerate(amount):
+        R = rot_z(sign * 180.0 * a)
+        for j in (el, wr):
+            out[t, j] = out[t, sh] + R @ (joints[t, j] - joints[t, sh])
+    return out
+
+
+def wave(joints: np.ndarray, side: str, amount: np.ndarray, hz: float = 1.5, amp: float = 0.08) -> np.ndarray:
+    """Raised arm plus a sideways swing of the wrist while it is up."""
+    out = raise_arm(joints, side, amount)
+    t = np.arange(len(out)) / FPS
+    out[:, ARM[side][2], 0] += amp * np.sin(2 * np.pi * hz * t) * (amount > 0.9)
+    return out
+
+
+def turn_in_place(joints: np.ndarray, degrees: np.ndarray) -> np.ndarray:
+    """Rotate the whole body about the vertical through the pelvis by degrees[t] (positive about +Y)."""
+    out = joints.copy()
+    for t, d in enumerate(degrees):
+        c = joints[t, 0] * np.array([1.0, 0.0, 1.0])
+        out[t] = (joints[t] - c) @ rot_y(d).T + c
+    return out
+
+
+def walk(pose: np.ndarray, velocity, seconds: float = 4.0, step_s: float = 1.0, planted: bool = True) -> np.ndarray:
+    """The pose travelling at ``velocity`` (m/s, xz) without turning. ``planted``: each foot stands still for
+    half of the step cycle and swings at twice the speed for the other half (a walk); else it glides (a run
+    has no still foot either)."""
+    T = int(seconds * FPS)
+    t = np.arange(T) / FPS
+    v = np.array([velocity[0], 0.0, velocity[1]])
+    out = pose[None] + t[:, None, None] * v  # (T, 22, 3)
+    if planted:
+        for side, shift in (("left", 0.0), ("right", 0.5)):
+            phase = t / step_s + shift
+            swing = np.clip((phase % 1.0 - 0.5) * 2.0, 0.0, 1.0)
+            travelled = (np.floor(phase) + swing - shift + 0.25) * step_s  # seconds of travel; average = t
+            for j in LEGS[side][1:]:
+                out[:, j] = pose[j] + travelled[:, None] * v
+    return out
+
+
+def walk_turn(pose: np.ndarray, degrees: np.ndarray, speed: float = 1.2) -> np.ndarray:
+    """A planted-feet walk whose path follows the facing, which turns by degrees[t] (positive about +Y)."""
+    local = walk(pose, (0.0, speed), seconds=len(degrees) / FPS)  # (T, 22, 3) straight along +Z
+    root = local[:, :1] * np.array([1.0, 0.0, 1.0])
+    step = np.stack([rot_y(d) @ np.array([0.0, 0.0, speed / FPS]) for d in degrees])  # (T, 3)
+    path = np.concatenate([np.zeros((1, 3)), np.cumsum(step[:-1], axis=0)])  # (T, 3)
+    return np.stack([(local[t] - root[t]) @ rot_y(d).T + path[t] for t, d in enumerate(degrees)])
+
+
+def bow_motion(pose: np.ndarray, degrees: float = 60.0, back_up: bool = True) -> np.ndarray:
+    """Upper body pitched forward about the pelvis (positive about +X moves the head towards +Z)."""
+    T = 4 * FPS
+    amount = ramp(T, (0.5, 1.5), (2.5, 3.5) if back_up else None)
+    out = still(pose)
+    pivot = pose[0]
+    for t, a in enumerate(amount):
+        out[t, UPPER_BODY] = (pose[UPPER_BODY] - pivot) @ rot_x(degrees * a).T + pivot
+    return out
+
+
+# ---- hands ------------------------------------------------------------------------------------------------
+
+
+def test_standing_still_shows_nothing(rest):
+    v = P.verdicts(still(rest))
+    assert v == {"raised": "none", "waving": "none", "turn": "none", "locomotion": "stand", "drift": "none",
+                 "bow": False, "kick": "none"}
+
+
+def test_raised_right_hand_and_its_mirror(rest):
+    T = 4 * FPS
+    j = raise_arm(still(rest), "right", ramp(T, (0.5, 1.0), (3.0, 3.5)))
+    r = P.raised_hand(j)
+    assert r.verdict == "right"
+    assert r.detail["right_above_head_m"] > 0.1 and r.detail["left_above_shoulder_m"] < -0.3
+    assert P.waving(j).verdict == "none"  # raising and lowering is not waving
+    assert P.passes(j, "raise-up-right-hand") and not P.passes(j, "raise-up-left-hand")
+    m = mirror_joints(j)
+    assert P.raised_hand(m).verdict == "left"
+    assert P.passes(m, "raise-up-left-hand") and not P.passes(m, "raise-up-right-hand")
+    assert P.detected_side(P.classify(m), "raise-up-right-hand") == "left"
+
+
+def test_a_hand_raised_too_briefly_does_not_count(rest):
+    T = 4 * FPS
+    t = np.arange(T)
+    j = raise_arm(still(rest), "right", ((t >= 40) & (t < 42)).astype(float))  # up for 0.1 s
+    assert P.raised_hand(j).verdict == "none"
+
+
+def test_both_hands(rest):
+    T = 4 * FPS
+    a = ramp(T, (0.5, 1.0), (3.0, 3.5))
+    j = raise_arm(raise_arm(still(rest), "right", a), "left", a)
+    assert P.raised_hand(j).verdict == "both"
+    assert P.passes(j, "raise-up-both-hands") and not P.passes(j, "raise-up-left-hand")
+
+
+def test_waving_right_hand_and_its_mirror(rest):
+    T = 5 * FPS
+    j = wave(still(rest, 5), "right", ramp(T, (0.5, 1.0), (4.0, 4.5)))
+    w = P.waving(j)
+    assert w.verdict == "right" and w.detail["right_swings"] >= 8 and w.detail["left_swings"] == 0
+    assert P.passes(j, "wave-right-hand") and not P.passes(j, "wave-left-hand")
+    m = mirror_joints(j)
+    assert P.waving(m).verdict == "left" and P.passes(m, "wave-left-hand")
+    # A swing smaller than the hysteresis is not a wave.
+    small = wave(still(rest, 5), "right", ramp(T, (0.5, 1.0), (4.0, 4.5)), amp=0.01)
+    assert P.waving(small).verdict == "none"
+
+
+# ---- turning and travelling ---------------------------------------------------------------------------------
+
+
+def test_left_turn_is_positive_yaw_towards_the_left_side(rest):
+    T = 4 * FPS
+    j = turn_in_place(still(rest), 90.0 * ramp(T, (1.0, 3.0)))
+    c = P.turn(j)
+    assert c.verdict == "left" and c.value == pytest.approx(90.0, abs=1.0)
+    # The body ends up facing where its own left side pointed at frame 0.
+    _, forward = P.body_frame(j)
+    left0 = rest[1] - rest[2]
+    left0[1] = 0.0
+    assert forward[-1] @ (left0 / np.linalg.norm(left0)) > 0.95
+    m = mirror_joints(j)
+    assert P.turn(m).verdict == "right" and P.turn(m).value == pytest.approx(-90.0, abs=1.0)
+    small = turn_in_place(still(rest), 20.0 * ramp(T, (1.0, 3.0)))
+    assert P.turn(small).verdict == "none"
+
+
+def test_walk_turn_labels(rest):
+    T = 4 * FPS
+    j = walk_turn(rest, 90.0 * ramp(T, (1.5, 2.5)))
+    assert P.locomotion(j).verdict == "walk" and P.turn(j).verdict == "left"
+    assert P.passes(j, "walk-turn-left") and not P.passes(j, "walk-turn-right")
+    assert P.passes(mirror_joints(j), "walk-turn-right")
+
+
+def test_walk_forward(rest):
+    j = walk(rest, (0.0, 1.2))
+    c = P.locomotion(j)
+    assert c.verdict == "walk"
+    assert c.value == pytest.approx(1.2, rel=0.05) and c.detail["forward_mps"] > 1.1
+    assert c.detail["flight_fraction"] == 0.0
+    assert P.turn(j).verdict == "none" and P.drift(j).verdict == "none"
+    assert P.passes(j, "walk") and not P.passes(j, "run") and not P.passes(j, "walk-back")
+
+
+def test_walk_backward_run_and_drift(rest):
+    back = walk(rest, (0.0, -0.8))
+    assert P.locomotion(back).verdict == "backward" and P.passes(back, "walk-back")
+    run = walk(rest, (0.0, 3.0), planted=False)
+    assert P.locomotion(run).verdict == "run" and P.passes(run, "run") and P.passes(run, "dash")
+    # 30 degrees to the performer's left (+X) while facing +Z.
+    left = walk(rest, (1.0 * np.sin(np.radians(30)), 1.0 * np.cos(np.radians(30))))
+    d = P.drift(left)
+    assert d.verdict == "left" and d.value == pytest.approx(30.0, abs=1.0)
+    assert P.passes(left, "walk-left") and not P.passes(left, "walk-right")
+    assert P.drift(mirror_joints(left)).verdict == "right"
+    assert P.passes(mirror_joints(left), "walk-right")
+    assert P.locomotion(walk(rest, (0.1, 0.0))).verdict == "stand"  # 0.1 m/s is standing about
+
+
+# ---- bow, kick ------------------------------------------------------------------------------------------------
+
+
+def test_bow_leans_forward_and_comes_back(rest):
+    j = bow_motion(rest)
+    c = P.bow(j)
+    assert c.verdict is True and c.value > 50 and c.detail["head_drop_m"] > 0.1
+    assert P.passes(j, "bow") and P.passes(mirror_joints(j), "bow")
+    assert P.bow(bow_motion(rest, back_up=False)).verdict is False  # stays down
+    assert P.bow(bow_motion(rest, degrees=-40.0)).verdict is False  # leaning back
+    assert P.bow(bow_motion(rest, degrees=10.0)).verdict is False  # a nod of the torso
+
+
+def test_kick_right_and_its_mirror(rest):
+    j = still(rest)
+    up = slice(30, 40)  # half a second with the right foot high in front
+    for k in LEGS["right"][1:]:
+        j[up, k] = rest[0] + np.array([-0.1, 0.0, 0.6]) + (0.0, 0.9 - rest[0, 1], 0.0)
+    assert P.kick(j).verdict == "right" and P.passes(j, "kick")
+    assert P.kick(mirror_joints(j)).verdict == "left"
+    behind = still(rest)
+    behind[up, 8] = rest[0] + np.array([-0.1, -0.2, -0.4])  # heel flicked up behind, as when running
+    assert P.kick(behind).verdict == "none"
+
+
+# ---- labels and errors ---------------------------------------------------------------------------------------
+
+
+def test_labels_sides_and_errors(rest):
+    assert P.side_of("wave-left-hand") == "left" and P.side_of("walk-turn-right") == "right"
+    assert P.side_of("walk-left") == "left" and P.side_of("bow") is None
+    assert P.side_check_for("wave-right-hand") == "raised" and P.side_check_for("walk-turn-left") == "turn"
+    assert P.side_check_for("walk-right") == "drift" and P.side_check_for("run") is None
+    assert P.mirror_label("raise-up-left-hand") == "raise-up-right-hand" and P.mirror_label("bow") == "bow"
+    assert P.expected_for("punch") is None and P.expected_for("wave-both-hands") == {"waving": {"both"}}
+    for label in P.CHECKED_LABELS:
+        assert set(P.expected_for(label)) <= set(P.CHECKS)
+    with pytest.raises(ValueError, match="no physical check"):
+        P.passes(still(rest), "punch")
+    with pytest.raises(ValueError, match=r"\(T, 22, 3\)"):
+        P.classify(np.zeros((10, 21, 3)))
+    with pytest.raises(ValueError, match="at least 2 frames"):
+        P.classify(rest[None])
+    bad = still(rest)
+    bad[3, 4, 1] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        P.classify(bad)
+    c = P.classify(still(rest))["raised"].as_dict()
+    assert c["verdict"] == "none" and isinstance(c["value"], float)
+
+
+# ---- real clips -------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def bandai_clips(request):
+    """The real Bandai Namco fixture clips (2 s crops), canonicalised like the prepared data."""
+    from pathlib import Path
+
+    from mld_core.data import bandai
+    from mld_core.motion.features import canonical_joints
+
+    folder = Path(request.config.rootpath) / "tests" / "fixtures" / "bandai"
+    clips = {p.stem: canonical_joints(bandai.clip_joints(p.read_bytes())) for p in sorted(folder.glob("*.bvh"))}
+    if not clips:
+        pytest.skip(f"no Bandai fixture clips in {folder}")
+    return clips
+
+
+@pytest.mark.parametrize("stem,label", [("dataset-2_walk-turn-left_normal_027", "walk-turn-left"),
+                                        ("dataset-2_wave-right-hand_normal_026", "wave-right-hand")])
+def test_real_clips_pass_their_label_and_mirrors_the_mirrored_label(bandai_clips, stem, label):
+    if stem not in bandai_clips:
+        pytest.skip(f"fixture {stem}.bvh missing")
+    j = bandai_clips[stem]
+    assert P.passes(j, label), P.failed_checks(j, label)
+    assert not P.passes(j, P.mirror_label(label))
+    m = mirror_joints(j)
+    assert P.passes(m, P.mirror_label(label)) and not P.passes(m, label)
+    assert P.detected_side(P.classify(m), P.mirror_label(label)) == P.side_of(P.mirror_label(label))
+
+
+def test_real_bye_clip_raises_the_right_hand(bandai_clips):
+    # dataset-1_bye_normal_001 waves slowly at shoulder height: only its first 2 s are here, which hold
+    # too few swings for the waving check, but the hand it waves with is up.
+    stem = "dataset-1_bye_normal_001"
+    if stem not in bandai_clips:
+        pytest.skip(f"fixture {stem}.bvh missing")
+    assert P.raised_hand(bandai_clips[stem]).verdict == "right"
+    assert P.raised_hand(mirror_joints(bandai_clips[stem])).verdict == "left"
+
+
+# ---- the script ------------------------------------------------------------------------------------------------
+
+
+def _load_script(rootpath):
+    spec = importlib.util.spec_from_file_location("side_accuracy", rootpath / "scripts" / "side_accuracy.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_side_accuracy_script_end_to_end(bandai_clips, tmp_path, request, capsys):
+    """A tiny HumanML3D-format folder from the fixture clips, scored real-only and with a tiny random model."""
+    from mld_core.testing import tiny_model
+
+    root = tmp_path / "data"
+    (root / "new_joints").mkdir(parents=True)
+    (root / "texts").mkdir()
+    labels = {}
+    wanted = {"dataset-2_walk-turn-left_normal_027": ("walk-turn-left", "a person walks and turns left."),
+              "dataset-2_wave-right-hand_normal_026": ("wave-right-hand", "a person waves the right hand.")}
+    for stem, (label, text) in wanted.items():
+        if stem not in bandai_clips:
+            pytest.skip(f"fixture {stem}.bvh missing")
+        for cid, j, lab, cap in ((stem, bandai_clips[stem], label, text),
+                                 ("M" + stem, mirror_joints(bandai_clips[stem]), P.mirror_label(label),
+                                  text.replace("left", "LEFT").replace("right", "left").replace("LEFT", "right"))):
+            np.save(root / "new_joints" / f"{cid}.npy", j.astype(np.float32))
+            (root / "texts" / f"{cid}.txt").write_text(f"{cap}#x#0.0#0.0\n", encoding="utf-8")
+            labels[cid] = lab
+    (root / "test.txt").write_text("\n".join(labels) + "\n", encoding="utf-8")
+    (root / "actions.json").write_text(json.dumps({"classes": sorted(set(labels.values())), "clips": labels}))
+
+    script = _load_script(request.config.rootpath)
+    contents = "wave-right-hand,wave-left-hand,walk-turn-left,walk-turn-right"
+    out = tmp_path / "real.json"
+    assert script.main(["--data", str(root), "--real-only", "--contents", contents, "--json", str(out)]) == 0
+    real = json.loads(out.read_text())["real"]
+    for c in contents.split(","):
+        assert real["contents"][c]["n"] == 1
+        assert real["contents"][c]["pass_rate"] == 1.0 and real["contents"][c]["side_accuracy"] == 1.0
+    assert real["overall"]["sided"]["side_accuracy"] == 1.0
+
+    model = tiny_model(tmp_path / "tiny")
+    out2 = tmp_path / "gen.json"
+    assert script.main(["--data", str(root), "--model", str(model), "--contents", "wave-right-hand,walk-turn-left",
+                        "--seeds", "2", "--seconds", "2", "--clip-length", "--steps", "2", "--json", str(out2)]) == 0
+    rep = json.loads(out2.read_text())
+    assert set(rep["generated"]) == {"captions@2s", "captions@clip", "paraphrase@2s", "paraphrase@clip"}
+    # captions: 1 clip x 2 seeds per content; paraphrases: 4 per content x 2 seeds
+    assert rep["generated"]["captions@2s"]["contents"]["wave-right-hand"]["n"] == 2
+    assert rep["generated"]["paraphrase@clip"]["contents"]["walk-turn-left"]["n"] == 8
+    for mode in rep["generated"].values():
+        for c in mode["contents"].values():
+            assert 0.0 <= c["pass_rate"] <= 1.0 and c["side_accuracy"] + c["opposite_side"] <= 1.0
+    assert "side" in capsys.readouterr().out
+
+
+def test_side_of_a_wave_is_the_waving_hand_else_the_raised_one(rest):
+    T = 5 * FPS
+    a = ramp(T, (0.5, 1.0), (4.0, 4.5))
+    both_up_left_waves = wave(raise_arm(still(rest, 5), "right", a), "left", a)
+    r = P.classify(both_up_left_waves)
+    assert r["raised"].verdict == "both" and r["waving"].verdict == "left"
+    assert P.detected_side(r, "wave-left-hand") == "left" and P.detected_side(r, "raise-up-left-hand") == "both"
+    only_raised = P.classify(raise_arm(still(rest, 5), "right", a))
+    assert P.detected_side(only_raised, "wave-left-hand") == "right"
