@@ -92,20 +92,25 @@ def read_manifest(path: Path = ADDON_SRC / MANIFEST) -> dict:
 def wheel_platforms(wheel_name: str) -> list[str]:
     """Blender platform names for a wheel file name (empty for pure-Python wheels)."""
     tag = wheel_name[: -len(".whl")].split("-")[-1]
+    machines = {"x86_64": ["x64"], "amd64": ["x64"], "aarch64": ["arm64"], "arm64": ["arm64"],
+                "universal2": ["x64", "arm64"]}
     out = []
     for plat in tag.split("."):
         if plat == "any":
             return []
         head, _, tail = plat.partition("_")
-        system = {"win": "windows", "macosx": "macos"}.get(head, "linux" if "linux" in head else head)
-        if head.startswith("win") and head != "win":
+        if head.startswith("win"):
             system = "windows"
-        machine = tail.rpartition("_")[2] if system != "windows" else tail
-        if system == "macos" and tail.endswith("universal2"):
-            out += ["macos-x64", "macos-arm64"]
-            continue
-        machine = {"x86_64": "x64", "amd64": "x64", "aarch64": "arm64", "arm64": "arm64"}.get(machine, machine)
-        out.append(f"{system}-{machine}")
+        elif head.startswith("macosx"):
+            system = "macos"
+        elif "linux" in head:
+            system = "linux"
+        else:
+            system = head
+        machine = next((m for m in machines if tail == m or tail.endswith("_" + m)), tail.rpartition("_")[2])
+        for arch in machines.get(machine, [machine]):
+            if f"{system}-{arch}" not in out:
+                out.append(f"{system}-{arch}")
     return out
 
 

@@ -15,7 +15,7 @@ bl_info = {
     "author": "MLD add-on contributors",
     "version": (0, 1, 0),
     "blender": (4, 2, 0),
-    "location": "View3D > Sidebar > Motion",
+    "location": "View3D > Sidebar > MLD",
     "description": "Generate armature animation from a text prompt (Motion Latent Diffusion)",
     "category": "Animation",
 }

@@ -22,6 +22,22 @@ class ApplyReport:
     keys: int = 0  # keyframes written in total
 
 
+# Other rigs: a provider ``fn(obj, take, scene_fps) -> posing.BoneChannels`` (bone names of ``obj``) that
+# retargets a take, registered by the retarget feature. ``check_target`` then accepts armatures without the
+# canonical bones (the provider raises ValueError with a message when it cannot map one).
+_channel_providers: list = []
+
+
+def register_channels_provider(fn) -> None:
+    if fn not in _channel_providers:
+        _channel_providers.append(fn)
+
+
+def unregister_channels_provider(fn) -> None:
+    if fn in _channel_providers:
+        _channel_providers.remove(fn)
+
+
 def scene_fps(scene) -> float:
     return scene.render.fps / (scene.render.fps_base or 1.0)
 
@@ -33,7 +49,7 @@ def check_target(obj) -> str:
     if obj.type != "ARMATURE":
         return f"{obj.name!r} is not an armature"
     missing = rig.missing_bones(obj)
-    if missing:
+    if missing and not _channel_providers:
         shown = ", ".join(missing[:4]) + (" ..." if len(missing) > 4 else "")
         return (
             f"{obj.name!r} lacks {len(missing)} of the model's bones ({shown}): "
@@ -49,19 +65,24 @@ def apply_result(obj, result, scene, *, exact: bool = True, set_frame_range: boo
     problem = check_target(obj)
     if problem:
         raise ValueError(problem)
-    rest = rig.rig_rest(obj)
+    canonical = rig.is_canonical(obj)
+    rest = rig.rig_rest(obj) if canonical else None
     fps = scene_fps(scene)
     report = ApplyReport(fps=fps)
     start = scene.frame_start
     existing = {a.name for a in bpy.data.actions}
     for index, take in enumerate(result.takes):
         t0 = time.perf_counter()
-        channels = posing.pose_channels(take.local_quats, take.joints, rest, src_fps=take.fps, dst_fps=fps, exact=exact)
+        if canonical:
+            channels = posing.pose_channels(take.local_quats, take.joints, rest, src_fps=take.fps, dst_fps=fps, exact=exact)
+        else:
+            channels = _channel_providers[-1](obj, take, fps)
         name = naming.unique_name(take.name or naming.action_name(take.prompt, take.seed), existing)
         existing.add(name)
         props = take.provenance()
         props["mld_scene_fps"] = float(fps)
-        props["mld_exact"] = int(bool(exact))
+        props["mld_exact"] = int(bool(exact) and canonical)
+        props["mld_retargeted"] = int(not canonical)
         action = keys.channels_to_action(
             obj, channels, name, frame_start=start, assign=assign and index == 0, properties=props
         )

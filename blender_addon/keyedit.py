@@ -246,6 +246,8 @@ def _bezier_param(x0, x1, x2, x3, f):
         u_new = u - np.where(ok, (xu - f) / np.where(ok, dx, 1.0), 0.0)
         bad = (u_new < lo) | (u_new > hi)
         u = np.where(xu == f, u, np.where(bad, (lo + hi) / 2, u_new))
+        if np.max(np.abs(xu - f), initial=0.0) < 1e-10:
+            break
     return u
 
 
@@ -520,25 +522,11 @@ def contact_pairs(contacts: np.ndarray) -> np.ndarray:
     return c > 0.5
 
 
-def _lock_weights(contact: np.ndarray, blend: int) -> tuple[np.ndarray, list[tuple[int, int]]]:
-    """Per-frame lock weight (ramps of ``blend`` frames outside each contact run) and the runs [start, end)."""
-    T = len(contact)
-    runs = []
-    t = 0
-    while t < T:
-        if contact[t]:
-            s = t
-            while t < T and contact[t]:
-                t += 1
-            runs.append((s, t))
-        else:
-            t += 1
-    w = np.zeros(T)
-    run_of = np.full(T, -1)
-    for r, (s, e) in enumerate(runs):
-        w[s:e] = 1.0
-        run_of[s:e] = r
-    return w, runs
+def contact_runs(contact: np.ndarray) -> list[tuple[int, int]]:
+    """The runs [start, end) of consecutive True values in a (T,) bool array."""
+    c = np.concatenate([[False], np.asarray(contact, dtype=bool), [False]])
+    edges = np.flatnonzero(np.diff(c.astype(np.int8)))
+    return [(int(s), int(e)) for s, e in zip(edges[::2], edges[1::2])]
 
 
 def foot_lock(
@@ -553,8 +541,8 @@ def foot_lock(
     """Keep each foot in place while it is in contact, solving the leg (thigh + shin) as a two-bone chain.
 
     quats (N, K, 4) / root_loc (N, 3): the take's mapped-bone rotations and pelvis location at the output rate;
-    contacts (N, 2) bool (left, right). During a contact run the ankle is held at its mean position over the run
-    (never below where it was); it eases in and out over ``blend_s`` seconds around the run. The foot keeps its
+    contacts (N, 2) bool (left, right). During a contact run the ankle is held at its mean position over the run;
+    it eases in and out over ``blend_s`` seconds around the run (as far as the leg reaches). The foot keeps its
     world orientation. Returns new (quats, root_loc) (root_loc unchanged).
     """
     rig = result.rig
@@ -574,11 +562,9 @@ def foot_lock(
         a_pos = pose[:, ia, :3, 3]
         target = a_pos.copy()
         weight = np.zeros(N)
-        _, runs = _lock_weights(contact, blend)
+        runs = contact_runs(contact)
         for s, e in runs:
             lock = a_pos[s:e].mean(axis=0)
-            lock_z = a_pos[s:e, 2].min()  # armature Z; fine for rigs whose armature space is Z up
-            lock[2] = max(lock[2], lock_z)
             lo, hi = max(0, s - blend), min(N, e + blend)
             for t in range(lo, hi):
                 if t < s:
@@ -614,17 +600,16 @@ def foot_lock(
         new_shin_w = R_shin @ R_thigh @ shin_w
         rest = rig.matrices[:, :3, :3]
         new_local = {}
-        for bone_i, new_w, parent_w in (
-            (ih, new_thigh_w, None),
-            (ik, new_shin_w, new_thigh_w),
-            (ia, foot_w, new_shin_w),
+        # Bones between thigh and shin (or shin and foot), if any, are unmapped and rigid: the shin is carried by
+        # the thigh as if it were its parent, and the foot by the shin.
+        for bone_i, new_w, parent_w, parent_i in (
+            (ih, new_thigh_w, None, rig.parents[ih]),
+            (ik, new_shin_w, new_thigh_w, ih),
+            (ia, foot_w, new_shin_w, ik),
         ):
-            p = rig.parents[bone_i]
             if parent_w is None:
-                parent_w = pose[frames, p, :3, :3] if p >= 0 else np.eye(3)
-                prest = rest[p] if p >= 0 else np.eye(3)
-            else:
-                prest = rest[rig.parents[bone_i]]
+                parent_w = pose[frames, parent_i, :3, :3] if parent_i >= 0 else np.eye(3)
+            prest = rest[parent_i] if parent_i >= 0 else np.eye(3)
             carried = parent_w @ prest.T @ rest[bone_i]
             new_local[bone_i] = np.swapaxes(carried, -1, -2) @ new_w
         for bone_i, m in new_local.items():
@@ -662,3 +647,34 @@ def baked_pose(baked: BakedKeys, result: "rt.RetargetResult") -> tuple[np.ndarra
     if (f'pose.bones["{result.root_bone}"].location', 0) in values:
         loc = np.stack([values[(f'pose.bones["{result.root_bone}"].location', i)] for i in range(3)], -1)
     return quats, loc
+
+
+def take_to_keys(
+    joints: np.ndarray,
+    rig: "rt.RigRest",
+    bone_map,
+    *,
+    retarget_options: "rt.RetargetOptions | None" = None,
+    bake_options: BakeOptions | None = None,
+    contacts: np.ndarray | None = None,
+    rotation_modes: dict[str, str] | None = None,
+    fps: float = 20.0,
+) -> tuple[BakedKeys, "rt.RetargetResult"]:
+    """One call from a generated take to the keys to write: check the map, retarget, resample, lock, reduce.
+
+    joints: (T, 22, 3) metres, Y up, at ``fps``; rig: the armature's rest (``rig_io.read_rig``); bone_map: a
+    ``bone_maps.BoneMap`` (or a plain joint -> bone dict). Raises ``bone_maps.BoneMapError`` (listing what is
+    missing) before anything is computed when the map does not fit the rig, so the caller keys nothing.
+    """
+    try:
+        from . import bone_maps as bm
+    except ImportError:  # pragma: no cover - imported as a top-level module
+        import bone_maps as bm  # type: ignore[no-redef]
+
+    if not isinstance(bone_map, bm.BoneMap):
+        bone_map = bm.BoneMap(dict(bone_map))
+    bone_map.validate(rig.names)
+    result = rt.retarget(joints, rig, bone_map.joints, retarget_options,
+                         parent_overrides=bone_map.parent_overrides, fps=fps)
+    baked = bake_keys(result, bake_options, contacts=contacts, rotation_modes=rotation_modes)
+    return baked, result

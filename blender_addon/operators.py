@@ -111,6 +111,9 @@ class MLD_OT_generate(bpy.types.Operator):
         )
         self.report({level}, message)
         runtime.tag_redraw()
+        if not wait:
+            # Nothing changed yet: no undo step now. The timer pushes exactly one when the keys land.
+            return {"CANCELLED"}
         return {"FINISHED"} if level == "INFO" else {"CANCELLED"}
 
 

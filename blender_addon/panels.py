@@ -1,4 +1,4 @@
-"""The sidebar panel: View3D > Sidebar > Motion (bpy)."""
+"""The sidebar panel: View3D > Sidebar > MLD (bpy)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ class MLD_PT_generate(bpy.types.Panel):
     bl_idname = "MLD_PT_generate"
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
-    bl_category = "Motion"
+    bl_category = "MLD"
 
     def draw(self, context):
         layout = self.layout

@@ -109,9 +109,9 @@ def slerp(q0: np.ndarray, q1: np.ndarray, t: np.ndarray) -> np.ndarray:
 def make_continuous(quats: np.ndarray, axis: int = 0) -> np.ndarray:
     """Flip signs along ``axis`` (time) so consecutive quaternions are in the same hemisphere."""
     q = np.moveaxis(np.array(quats, np.float64, copy=True), axis, 0)
-    for i in range(1, q.shape[0]):
-        flip = np.sum(q[i] * q[i - 1], axis=-1) < 0
-        q[i][flip] *= -1
+    if len(q) > 1:
+        flips = np.cumsum(np.sum(q[1:] * q[:-1], axis=-1) < 0, axis=0) % 2 == 1  # (T-1, ...)
+        q[1:][flips] *= -1
     return np.moveaxis(q, 0, axis)
 
 

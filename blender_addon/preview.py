@@ -80,7 +80,7 @@ class _Stage:
         s = 50.0
         floor_mesh.from_pydata([(-s, -s, 0), (s, -s, 0), (s, s, 0), (-s, s, 0)], [], [(0, 1, 2, 3)])
         self.floor = bpy.data.objects.new("MLD_PreviewFloor", floor_mesh)
-        self.floor.color = (0.8, 0.82, 0.85, 1.0)
+        self.floor.color = (1.0, 1.0, 1.0, 1.0)
         scene.collection.objects.link(self.floor)
         self.added += [self.floor, floor_mesh]
         if self.engine != "BLENDER_WORKBENCH":
@@ -146,15 +146,20 @@ def _read_png(path: str) -> np.ndarray:
         bpy.data.images.remove(image)
 
 
-def _write_png(path: Path, pixels: np.ndarray) -> None:
+def _write_png(path: Path, pixels: np.ndarray, scene) -> None:
+    """RGB PNG at maximum compression (through the scene's output settings, restored afterwards)."""
     h, w = pixels.shape[:2]
     image = bpy.data.images.new("MLD_PreviewStrip", width=w, height=h, alpha=False)
+    settings = scene.render.image_settings
+    view = scene.view_settings
+    saved = (settings.file_format, settings.color_mode, settings.compression, view.view_transform)
     try:
         image.pixels.foreach_set(pixels.astype(np.float32).ravel())
-        image.filepath_raw = str(path)
-        image.file_format = "PNG"
-        image.save()
+        settings.file_format, settings.color_mode, settings.compression = "PNG", "RGB", 100
+        view.view_transform = "Standard"  # the tiles are display colours already
+        image.save_render(str(path), scene=scene)
     finally:
+        settings.file_format, settings.color_mode, settings.compression, view.view_transform = saved
         bpy.data.images.remove(image)
 
 
@@ -180,7 +185,7 @@ def render_strip(scene, armature, out_path, frames: list[int], *, engine: str = 
     fd, tmp_png = tempfile.mkstemp(dir=out_path.parent, prefix=f".{out_path.stem}.", suffix=".png")
     os.close(fd)
     try:
-        _write_png(Path(tmp_png), strip)
+        _write_png(Path(tmp_png), strip, scene)
         _umask_mode(tmp_png)
         os.replace(tmp_png, out_path)
     finally:

@@ -406,11 +406,13 @@ def fk(
     rig: RigRest,
     rotations: np.ndarray | None = None,
     locations: np.ndarray | None = None,
+    bones: list[int] | None = None,
 ) -> np.ndarray:
     """Posed armature-space matrices (T, B, 4, 4) from local quaternions (T, B, 4) and locations (T, B, 3).
 
     ``pose[b] = pose[parent] @ rest[parent]^-1 @ rest[b] @ T(location[b]) @ R(rotation[b])``; roots use
-    ``rest[b] @ T @ R``. ``None`` means rest (identity / zero) for every bone.
+    ``rest[b] @ T @ R``. ``None`` means rest (identity / zero) for every bone. ``bones``: only these bones (and
+    their ancestors) are computed; the other entries are left undefined.
     """
     if rotations is None and locations is None:
         rotations = np.tile(np.array([1.0, 0.0, 0.0, 0.0]), (1, len(rig.names), 1))
@@ -424,7 +426,14 @@ def fk(
     rest = rig.matrices
     rest_inv = np.linalg.inv(rest)
     pose = np.empty((T, B, 4, 4))
-    for b in rig.order:
+    order = rig.order
+    if bones is not None:
+        needed = set()
+        for b in bones:
+            needed.add(int(b))
+            needed.update(rig.ancestors(int(b)))
+        order = [b for b in order if b in needed]
+    for b in order:
         p = rig.parents[b]
         if p < 0:
             pose[:, b] = rest[b] @ local[:, b]
@@ -500,9 +509,9 @@ class RetargetResult:
     def world_joints(self) -> dict[str, np.ndarray]:
         """World-space (T, 3) head position of every mapped bone after FK, keyed by canonical joint."""
         rot, loc = self.full_pose()
-        pose = fk(self.rig, rot, loc)
-        heads = _to_world(self.rig, pose[:, :, :3, 3])
-        return {j: heads[:, self.rig.index(b)] for j, b in zip(self.joints, self.bones)}
+        idx = [self.rig.index(b) for b in self.bones]
+        pose = fk(self.rig, rot, loc, bones=idx)
+        return {j: _to_world(self.rig, pose[:, i, :3, 3]) for j, i in zip(self.joints, idx)}
 
 
 def _to_world(rig: RigRest, points: np.ndarray) -> np.ndarray:
@@ -925,10 +934,11 @@ def _twist_angles(h_cur: np.ndarray, h_src: np.ndarray, weight: np.ndarray, d: n
 def quat_continuity(q: np.ndarray) -> np.ndarray:
     """Flip signs along axis 0 so consecutive quaternions (T, ..., 4) lie in the same hemisphere (no flips)."""
     q = np.array(q, dtype=np.float64, copy=True)
-    for t in range(1, q.shape[0]):
-        flip = np.sum(q[t] * q[t - 1], axis=-1) < 0
-        q[t][flip] *= -1
-    return q
+    if q.shape[0] < 2:
+        return q
+    step = np.where(np.sum(q[1:] * q[:-1], axis=-1) < 0, -1.0, 1.0)  # (T-1, ...) flip relative to the previous
+    sign = np.concatenate([np.ones_like(step[:1]), np.cumprod(step, axis=0)], axis=0)
+    return q * sign[..., None]
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -5,8 +5,6 @@ component and a ``MODEL_CARD.md``. Loading never unpickles; a missing or corrupt
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -15,6 +13,7 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
+from mld_core.fileio import atomic_write
 from mld_core.models.denoiser import DenoiserConfig
 from mld_core.models.vae import VAEConfig
 from mld_core.schedulers import SchedulerConfig
@@ -79,33 +78,14 @@ def skeleton_info() -> dict:
             "reference_offsets": np.asarray(skeleton.REFERENCE_OFFSETS).round(6).tolist()}
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def _atomic_write(path: Path, write) -> None:
-    """Write through a temporary file in the same folder, then rename: never a half-written file."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        write(tmp)
-        os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
 def save_json(path: Path, data: dict) -> None:
-    _atomic_write(Path(path), lambda tmp: Path(tmp).write_text(json.dumps(data, indent=2) + "\n"))
+    atomic_write(Path(path), lambda tmp: Path(tmp).write_text(json.dumps(data, indent=2) + "\n"))
 
 
 def save_weights(path: Path, module: torch.nn.Module, dtype: torch.dtype | None = None) -> None:
     state = {k: (v.to(dtype) if dtype is not None and v.is_floating_point() else v).detach().contiguous().cpu()
              for k, v in module.state_dict().items()}
-    _atomic_write(Path(path), lambda tmp: save_file(state, tmp, metadata={"format": "pt"}))
+    atomic_write(Path(path), lambda tmp: save_file(state, tmp, metadata={"format": "pt"}))
 
 
 def load_weights(path: Path, module: torch.nn.Module) -> None:
@@ -154,6 +134,6 @@ def save_model(model_dir: Path, config: ModelConfig, vae: torch.nn.Module, denoi
     if denoiser is not None:
         save_weights(model_dir / "denoiser.safetensors", denoiser, dtype)
     if card is not None:
-        _atomic_write(model_dir / "MODEL_CARD.md", lambda tmp: Path(tmp).write_text(card))
+        atomic_write(model_dir / "MODEL_CARD.md", lambda tmp: Path(tmp).write_text(card))
     save_json(model_dir / "config.json", config.to_dict())
     return model_dir

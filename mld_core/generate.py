@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-import os
 import re
 import sys
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from mld_core.fileio import atomic_write
 
 _FRAMES_LINE = re.compile(r"^\s*(\d+)\s+(.*\S)\s*$")
 
@@ -56,18 +56,6 @@ def read_prompt_file(path: Path, fps: int = 20) -> list[PromptLine]:
     return parse_prompt_lines(data.decode("utf-8"), fps, str(path))
 
 
-def _atomic_save(path: Path, save) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
-    os.close(fd)
-    try:
-        save(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
 def write_npz(path: Path, out) -> None:
     def save(tmp):
         with open(tmp, "wb") as f:
@@ -75,7 +63,8 @@ def write_npz(path: Path, out) -> None:
                      lengths=np.asarray(out.lengths, np.int64), fps=np.int64(out.fps), prompts=np.array(out.prompts),
                      seeds=np.asarray(out.seeds, np.int64), model_id=np.array(out.model_id))
 
-    _atomic_save(Path(path), save)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(path, save)
 
 
 def bvh_paths(path: Path, n: int) -> list[Path]:
@@ -98,7 +87,7 @@ def write_bvhs(path: Path, out, fps: int) -> list[Path]:
         quats, root = features_to_rotations(out.features[i, :n])
         if fps != out.fps:
             quats, root = resample_quaternions(quats, root, out.fps, fps)
-        _atomic_save(p, lambda tmp: write_bvh(tmp, list(skeleton.JOINT_NAMES), list(skeleton.PARENTS),
+        atomic_write(p, lambda tmp: write_bvh(tmp, list(skeleton.JOINT_NAMES), list(skeleton.PARENTS),
                                               np.asarray(skeleton.REST_OFFSETS), root, quats, 1.0 / fps))
     return paths
 

@@ -93,7 +93,8 @@ class DDIMScheduler(_Schedule):
             raise ValueError(f"num_inference_steps must be in 1..{n_train}, got {num_inference_steps}")
         self.num_inference_steps = num_inference_steps
         ratio = n_train // num_inference_steps
-        self.timesteps = (torch.arange(0, num_inference_steps) * ratio).flip(0) + self.config.steps_offset
+        timesteps = (torch.arange(0, num_inference_steps) * ratio).flip(0) + self.config.steps_offset
+        self.timesteps = timesteps.clamp(max=n_train - 1)  # with steps_offset 1, 1000 steps would reach t = 1000
 
     def step(self, model_output: torch.Tensor, timestep: int, sample: torch.Tensor, eta: float = 0.0,
              generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:

@@ -201,6 +201,7 @@ def measure(bpy, name: str, obj, joints: np.ndarray, contacts: np.ndarray, take:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--clip", action="append", type=Path, help="Bandai BVH clip(s) as source takes")
+    parser.add_argument("--take", action="append", default=[], help="only these stored fixture takes (by clip name)")
     parser.add_argument("--generated", action="append", default=[], help="also retarget a take generated from this prompt")
     parser.add_argument("--seconds", type=float, default=4.0)
     parser.add_argument("--bvh-rig", type=Path, default=DEFAULT_BVH_RIG, help="BVH file imported as a target rig")
@@ -221,6 +222,8 @@ def main(argv: list[str] | None = None) -> int:
         for key in sorted(stored.files):
             if key.endswith("_joints"):
                 stem = key[: -len("_joints")]
+                if args.take and stem not in args.take:
+                    continue
                 takes[stem] = (stored[key].astype(np.float64), stored[f"{stem}_contacts"].astype(np.float64))
     for i, prompt in enumerate(args.generated):
         takes[f"generated{i}"] = source_from_model(prompt, args.seconds, seed=i)

@@ -320,7 +320,8 @@ def vae_reconstruct(pipe, clips: dict, lengths: list, max_clips: int, batch: int
                 if length == "clip":
                     out_n = n
                 else:
-                    out_n = torch.full_like(n, pipe.frames_for(float(np.clip(length, pipe.min_seconds, pipe.max_seconds))))
+                    secs = float(np.clip(length, pipe.min_seconds, pipe.max_seconds))
+                    out_n = torch.full_like(n, pipe.frames_for(secs))
                 out = pipe.latents_to_features(z, out_n.to(pipe.device))
                 joints = pipe.joints_from_features(out, out_n.tolist())
                 for i, (content, _) in enumerate(chunk):
@@ -455,26 +456,32 @@ def main(argv: list[str] | None = None) -> int:
     if not args.real_only:
         import torch
 
+        from mld_core.checkpoint import CheckpointError
         from mld_core.pipeline import MLDPipeline
 
         if args.threads:
             torch.set_num_threads(args.threads)
         t0 = time.perf_counter()
-        pipe = MLDPipeline.from_pretrained(args.model)
+        try:
+            pipe = MLDPipeline.from_pretrained(args.model)
+        except (CheckpointError, OSError) as exc:
+            print(f"side_accuracy.py: cannot load the model: {exc}", file=sys.stderr)
+            return 2
         print(f"loaded {pipe.model_id} in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
         lengths = []
         if args.seconds is not None or not args.clip_length:
             lengths.append(float(args.seconds if args.seconds is not None else 4.0))
         if args.clip_length:
             lengths.append("clip")
+        cond = pipe.denoiser.config.cond if pipe.denoiser is not None else None
+        if cond is None and not args.vae_recon:
+            print(f"side_accuracy.py: {args.model} holds only a VAE: use --vae-recon (or --real-only)", file=sys.stderr)
+            return 2
         tallies = defaultdict(lambda: defaultdict(Tally))
         seconds = 0.0
-        cond = pipe.denoiser.config.cond if pipe.denoiser is not None else None
         if args.vae_recon:
             recon_lengths = list(dict.fromkeys(["clip", *lengths]))
             seconds += vae_reconstruct(pipe, clips, recon_lengths, args.max_clips, args.batch, fps, tallies)
-        if cond is None and not args.vae_recon:
-            raise SystemExit(f"{args.model} holds only a VAE: use --vae-recon (or --real-only)")
         if cond is not None:
             modes = ["paraphrase", "captions"] if args.prompts == "both" else [args.prompts]
             if cond == "action":

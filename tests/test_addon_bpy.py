@@ -138,6 +138,31 @@ out["cancel_steps"] = job.step_done
 out["cancel_message"] = s.last_message
 out["cancel_no_action"] = len(bpy.data.actions) == n_before
 
+# another rig, through a registered channel provider (how retargeting plugs in)
+apply = sys.modules[pkg + ".apply"]
+other = rig.create_canonical_armature(ctx, name="Other", body=False)
+for bone in other.data.bones:
+    bone.name = "rig:" + bone.name
+out["problem_other"] = apply.check_target(other)
+
+def provider(obj, take, fps):
+    names = tuple("rig:" + n for n in rig.canonical_names())
+    bones = obj.data.bones
+    rest = posing.RigRest(rig.canonical_names(), posing.canonical_rig()[1],
+                          np.array([bones[n].head_local[:] for n in names]),
+                          np.array([[r[:] for r in bones[n].matrix_local.to_3x3()] for n in names]))
+    channels = posing.pose_channels(take.local_quats, take.joints, rest, dst_fps=fps, exact=False)
+    channels.names = names
+    return channels
+
+apply.register_channels_provider(provider)
+s.target, s.prompt = other, "a person waves"
+bpy.ops.mld.generate()
+act = other.animation_data.action
+out["other_action"] = [act.name, act["mld_retargeted"], act["mld_exact"], len(keys.fcurves_of(act))]
+apply.unregister_channels_provider(provider)
+s.target = obj
+
 # save, reload: keys and provenance stay
 bpy.ops.wm.save_as_mainfile(filepath=BLEND)
 bpy.ops.wm.open_mainfile(filepath=BLEND)
@@ -174,6 +199,8 @@ def test_extension_zip_generates_on_the_canonical_armature(tmp_path, addon_zip):
     assert r["async_action"] == "jumps_s4" and "jumps_s4" in r["async_message"]
     assert r["cancel_state"] == "cancelled" and r["cancel_steps"] < 500 and r["cancel_message"] == "Cancelled"
     assert r["cancel_no_action"]
+    assert "lacks 22 of the model's bones" in r["problem_other"]
+    assert r["other_action"] == ["waves_s4", 1, 0, 22 * 4 + 3]  # rotations + root location
     assert r["reloaded_fcurves"] == 154 and r["reloaded_keys"] == [40]
     assert r["reloaded_prompt"] == "a person walks forward" and r["reloaded_variant2"]
 
@@ -196,6 +223,61 @@ for _ in range(3):
     bpy.ops.mld.randomize_seed()
     seeds.add(bpy.context.scene.mld_motion.seed)
 out["random_seeds"] = len(seeds)
+
+# Draw the panel and the preferences with a recording layout: every property and operator must exist.
+class Layout:
+    calls = []
+    def __init__(self):
+        self.alert = False
+        self.enabled = True
+    def _sub(self, *a, **k):
+        return Layout()
+    row = column = box = split = _sub
+    def prop(self, data, name, **k):
+        assert name in data.bl_rna.properties, name
+        Layout.calls.append(("prop", name))
+    def operator(self, idname, **k):
+        group, op = idname.split(".")
+        assert hasattr(getattr(bpy.ops, group), op), idname
+        Layout.calls.append(("operator", idname))
+    def label(self, text="", **k):
+        Layout.calls.append(("label", text))
+    def progress(self, factor=0.0, type="BAR", text=""):
+        Layout.calls.append(("progress", text))
+    def separator(self, **k):
+        pass
+
+class Host:
+    def __init__(self):
+        self.layout = Layout()
+
+from blender_addon import panels, runtime, preferences
+import time
+ctx = bpy.context
+drawn = {{}}
+panels.MLD_PT_generate.draw(Host(), ctx)
+drawn["empty_scene"] = list(Layout.calls); Layout.calls.clear()
+bpy.ops.mld.create_armature()
+s = ctx.scene.mld_motion
+s.last_error = "Length must be between 1 and 9.8 seconds, got 12 and this sentence is long enough to wrap"
+panels.MLD_PT_generate.draw(Host(), ctx)
+drawn["error"] = list(Layout.calls); Layout.calls.clear()
+s.last_error, s.last_message, s.last_frames, s.last_seconds, s.last_actions = "", "ok", 80, 0.4, "walk_s0, walk_s0_v2"
+panels.MLD_PT_generate.draw(Host(), ctx)
+drawn["result"] = list(Layout.calls); Layout.calls.clear()
+gate = __import__("threading").Event()
+runtime._runner = runtime.JobRunner(lambda job: (job.step(3, 10), gate.wait(20)))
+job = runtime._runner.submit("x")
+while job.step_done < 3:
+    time.sleep(0.01)
+panels.MLD_PT_generate.draw(Host(), ctx)
+drawn["running"] = list(Layout.calls); Layout.calls.clear()
+gate.set(); job.wait(10); runtime._runner.finished()
+prefs = ctx.preferences.addons["blender_addon"].preferences
+preferences.MLD_AddonPreferences.draw(type("P", (), {{"layout": Layout(), "model_dir": prefs.model_dir,
+    "device": prefs.device, "threads": prefs.threads, "bl_rna": prefs.bl_rna}})(), ctx)
+drawn["prefs"] = list(Layout.calls)
+out["drawn"] = drawn
 addon_utils.disable("blender_addon", default_set=True)
 out["unregistered"] = not hasattr(bpy.types.Scene, "mld_motion") and not hasattr(bpy.types, "MLD_PT_generate")
 emit(out)
@@ -232,6 +314,18 @@ def test_plain_package_registers_and_unregisters(tmp_path):
     assert r["ops"] == [True] * 4 and r["panel"] and r["core_from_repo"]
     assert r["random_seeds"] >= 2
     assert r["unregistered"]
+    drawn = {k: [tuple(c) for c in v] for k, v in r["drawn"].items()}
+    assert ("operator", "mld.create_armature") in drawn["empty_scene"]
+    assert ("operator", "mld.generate") in drawn["empty_scene"] and ("prop", "prompt") in drawn["empty_scene"]
+    assert ("operator", "mld.randomize_seed") in drawn["empty_scene"]
+    assert {"seconds", "variants", "seed", "steps", "guidance", "target", "exact", "set_frame_range"} <= {
+        name for kind, name in drawn["empty_scene"] if kind == "prop"}
+    assert ("operator", "mld.create_armature") not in drawn["error"]
+    assert [c for c in drawn["error"] if c[0] == "label" and c[1].startswith("Length must be")]
+    assert ("label", "80 frames in 0.40 s") in drawn["result"] and ("label", "walk_s0_v2") in drawn["result"]
+    assert ("progress", "Denoising 3/10") in drawn["running"] and ("operator", "mld.cancel") in drawn["running"]
+    assert ("operator", "mld.generate") not in drawn["running"]
+    assert ("prop", "model_dir") in drawn["prefs"] and ("prop", "device") in drawn["prefs"]
 
 
 CHECK_BLEND = r"""
@@ -257,7 +351,7 @@ def _sha(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def test_batch_script_end_to_end(tmp_path, tiny_dir):
+def test_batch_script_end_to_end(tmp_path, tiny_dir, capsys):
     prompts = tmp_path / "prompts.txt"
     prompts.write_text("# three takes\n30 a person walks forward\na person jumps\n50 a person waves\n")
     out = tmp_path / "out" / "takes.blend"
@@ -287,10 +381,13 @@ def test_batch_script_end_to_end(tmp_path, tiny_dir):
     assert r["assigned"] == "walks_forward_s7" and r["fps"] == 20 and r["frame_end"] == 30
     assert r["preview_objects_left"] == []
 
-    # existing outputs are refused without --overwrite, and left untouched
+    # existing outputs are refused without --overwrite, and left untouched (checked before any work: in-process)
+    from blender_addon import batch
+
     before = _sha(out)
-    proc = run_python(args, user_dir=user, timeout=120)
-    assert proc.returncode == 2 and "exists; pass --overwrite" in proc.stderr and "Traceback" not in proc.stderr
+    assert batch.main(["batch.py", *map(str, args[1:])]) == 2
+    err = capsys.readouterr().err
+    assert "exists; pass --overwrite" in err and "Traceback" not in err
     assert _sha(out) == before
 
     # bad input: a message and exit code 2, nothing written
@@ -302,11 +399,13 @@ def test_batch_script_end_to_end(tmp_path, tiny_dir):
         (["--prompt", "walk", "--out", tmp_path / "x.txt"], "must name a .blend"),
         (["--prompt", "walk", "--out", tmp_path / "x.blend", "--model", tmp_path / "nomodel"], "model folder not found"),
         (["--out", tmp_path / "x.blend"], "one of the arguments --prompts --prompt is required"),
-        (["--prompt", "walk", "--out", tmp_path / "x.blend", "--model", tiny_dir, "--armature", "Nobody"],
-         "no object named 'Nobody'"),
     ]
     for extra, words in cases:
-        proc = run_python([script, *extra], user_dir=user, timeout=120)
-        assert proc.returncode == 2, (extra, proc.stdout, proc.stderr)
-        assert words in proc.stderr and "Traceback" not in proc.stderr, (extra, proc.stderr)
+        assert batch.main(["batch.py", *map(str, extra)]) == 2, extra
+        err = capsys.readouterr().err
+        assert words in err and "Traceback" not in err, (extra, err)
+    # the same through a real process, for a problem found inside Blender's data
+    proc = run_python([script, "--prompt", "walk", "--out", tmp_path / "x.blend", "--model", tiny_dir,
+                       "--armature", "Nobody"], user_dir=user, timeout=120)
+    assert proc.returncode == 2 and "no object named 'Nobody'" in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "x.blend").exists()

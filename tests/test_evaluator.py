@@ -370,3 +370,16 @@ def test_cli_evaluate_reports_user_errors(tmp_path, capsys):
     assert main(["train", "evaluator", "--data", str(data), "--out", str(tmp_path / "x"),
                  "--text-encoder", "{bad"]) == 2
     assert "not JSON" in capsys.readouterr().err
+
+
+def test_bundled_evaluator_loads_and_embeds_a_real_motion(fixtures):
+    model = Evaluator.from_pretrained()  # mld_core/weights/evaluator
+    assert model.config.feature_dim == 263 and model.config.num_actions == 24
+    assert model.config.text_encoder["kind"] == "minilm"
+    feats = np.load(fixtures / "humanml3d" / "new_joint_vecs_012314.npy").astype(np.float32)
+    emb = model.encode_motion([feats[:196], feats[:60]])
+    assert emb.shape == (2, model.config.embed_dim)
+    np.testing.assert_allclose(np.linalg.norm(emb, axis=1), 1.0, atol=1e-4)
+    np.testing.assert_allclose(model.encode_motion([feats[:60]])[0], emb[1], atol=1e-5)  # alone == batched
+    logits = model.classify([feats[:196]])
+    assert logits.shape == (1, 24) and np.isfinite(logits).all()

@@ -86,10 +86,12 @@ def turn_in_place(joints: np.ndarray, degrees: np.ndarray) -> np.ndarray:
     return out
 
 
-def walk(pose: np.ndarray, velocity, seconds: float = 4.0, step_s: float = 1.0, planted: bool = True) -> np.ndarray:
-    """The pose travelling at ``velocity`` (m/s, xz) without turning. ``planted``: each foot stands still for
-    half of the step cycle and swings at twice the speed for the other half (a walk); else it glides (a run
-    has no still foot either)."""
+def walk(pose: np.ndarray, velocity, seconds: float = 4.0, step_s: float = 1.0, stance: float = 0.5,
+         lift: float = 0.1, planted: bool = True) -> np.ndarray:
+    """The pose travelling at ``velocity`` (m/s, xz) without turning. Each foot (ankle + toe) stands still
+    for ``stance`` of the step cycle and swings forward, ``lift`` m high at mid-swing, for the rest, the
+    right foot half a cycle after the left: stance 0.5 is a walk (always a foot down), less gives both feet
+    in the air at once (a run). ``planted=False``: the feet glide along with the body (no steps at all)."""
     T = int(seconds * FPS)
     t = np.arange(T) / FPS
     v = np.array([velocity[0], 0.0, velocity[1]])
@@ -97,10 +99,12 @@ def walk(pose: np.ndarray, velocity, seconds: float = 4.0, step_s: float = 1.0, 
     if planted:
         for side, shift in (("left", 0.0), ("right", 0.5)):
             phase = t / step_s + shift
-            swing = np.clip((phase % 1.0 - 0.5) * 2.0, 0.0, 1.0)
-            travelled = (np.floor(phase) + swing - shift + 0.25) * step_s  # seconds of travel; average = t
+            swing = np.clip((phase % 1.0 - stance) / (1.0 - stance), 0.0, 1.0)  # 0 in stance, 0 -> 1 in swing
+            travelled = (np.floor(phase) + swing - shift + 0.5 * (1 - stance)) * step_s  # average = t
+            height = lift * np.sin(np.pi * swing)
             for j in LEGS[side][1:]:
                 out[:, j] = pose[j] + travelled[:, None] * v
+                out[:, j, 1] += height
     return out
 
 
@@ -212,11 +216,26 @@ def test_walk_forward(rest):
     assert P.passes(j, "walk") and not P.passes(j, "run") and not P.passes(j, "walk-back")
 
 
-def test_walk_backward_run_and_drift(rest):
+def test_walk_backward_run_and_glide(rest):
     back = walk(rest, (0.0, -0.8))
     assert P.locomotion(back).verdict == "backward" and P.passes(back, "walk-back")
-    run = walk(rest, (0.0, 3.0), planted=False)
-    assert P.locomotion(run).verdict == "run" and P.passes(run, "run") and P.passes(run, "dash")
+    fast = walk(rest, (0.0, 3.0), step_s=0.7, stance=0.35)
+    assert P.locomotion(fast).verdict == "run" and P.passes(fast, "run") and P.passes(fast, "dash")
+    # A slow run is told from a walk by its flight phase: both feet off the ground at once.
+    jog = walk(rest, (0.0, 1.6), step_s=0.7, stance=0.35)
+    c = P.locomotion(jog)
+    assert c.verdict == "run" and c.value < P.RUN_MIN_SPEED <= 2.0
+    assert P.RUN_MIN_FLIGHT <= c.detail["flight_fraction"] < 0.35
+    # The same steps with the feet sliding over the floor instead of lifting: a walk.
+    shuffle = walk(rest, (0.0, 1.6), step_s=0.7, stance=0.35, lift=0.0)
+    assert P.locomotion(shuffle).verdict == "walk" and P.locomotion(shuffle).detail["flight_fraction"] == 0.0
+    # Travelling without any steps is a glide, neither a walk nor a run.
+    glide = walk(rest, (0.0, 1.2), planted=False)
+    assert P.locomotion(glide).verdict == "glide" and not P.passes(glide, "walk")
+    assert P.locomotion(walk(rest, (0.0, 3.0), planted=False)).verdict == "glide"
+
+
+def test_drift(rest):
     # 30 degrees to the performer's left (+X) while facing +Z.
     left = walk(rest, (1.0 * np.sin(np.radians(30)), 1.0 * np.cos(np.radians(30))))
     d = P.drift(left)
@@ -331,10 +350,12 @@ def _load_script(rootpath):
 
 def test_side_accuracy_script_end_to_end(bandai_clips, tmp_path, request, capsys):
     """A tiny HumanML3D-format folder from the fixture clips, scored real-only and with a tiny random model."""
+    from mld_core.motion.features import joints_to_features
     from mld_core.testing import tiny_model
 
     root = tmp_path / "data"
     (root / "new_joints").mkdir(parents=True)
+    (root / "new_joint_vecs").mkdir()
     (root / "texts").mkdir()
     labels = {}
     wanted = {"dataset-2_walk-turn-left_normal_027": ("walk-turn-left", "a person walks and turns left."),
@@ -346,6 +367,7 @@ def test_side_accuracy_script_end_to_end(bandai_clips, tmp_path, request, capsys
                                  ("M" + stem, mirror_joints(bandai_clips[stem]), P.mirror_label(label),
                                   text.replace("left", "LEFT").replace("right", "left").replace("LEFT", "right"))):
             np.save(root / "new_joints" / f"{cid}.npy", j.astype(np.float32))
+            np.save(root / "new_joint_vecs" / f"{cid}.npy", joints_to_features(j))
             (root / "texts" / f"{cid}.txt").write_text(f"{cap}#x#0.0#0.0\n", encoding="utf-8")
             labels[cid] = lab
     (root / "test.txt").write_text("\n".join(labels) + "\n", encoding="utf-8")
@@ -364,9 +386,12 @@ def test_side_accuracy_script_end_to_end(bandai_clips, tmp_path, request, capsys
     model = tiny_model(tmp_path / "tiny")
     out2 = tmp_path / "gen.json"
     assert script.main(["--data", str(root), "--model", str(model), "--contents", "wave-right-hand,walk-turn-left",
-                        "--seeds", "2", "--seconds", "2", "--clip-length", "--steps", "2", "--json", str(out2)]) == 0
+                        "--seeds", "2", "--seconds", "2", "--clip-length", "--steps", "2", "--vae-recon",
+                        "--json", str(out2)]) == 0
     rep = json.loads(out2.read_text())
-    assert set(rep["generated"]) == {"captions@2s", "captions@clip", "paraphrase@2s", "paraphrase@clip"}
+    assert set(rep["generated"]) == {"captions@2s", "captions@clip", "paraphrase@2s", "paraphrase@clip",
+                                     "vae-recon@2s", "vae-recon@clip"}
+    assert rep["generated"]["vae-recon@clip"]["contents"]["walk-turn-left"]["n"] == 1
     # captions: 1 clip x 2 seeds per content; paraphrases: 4 per content x 2 seeds
     assert rep["generated"]["captions@2s"]["contents"]["wave-right-hand"]["n"] == 2
     assert rep["generated"]["paraphrase@clip"]["contents"]["walk-turn-left"]["n"] == 8

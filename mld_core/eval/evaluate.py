@@ -153,8 +153,8 @@ class PipelineGenerator:
         return self._batched(len(prompts), lambda s: self._call(
             prompts[s], frames[s], [seed + i for i in range(s.start, s.stop)], **kw), "t2m")
 
-    def text_variants(self, prompts: list[str], frames: list[int], repeats: int, seed: int) -> np.ndarray:
-        """(len(prompts), repeats) list of generations; variant v of prompt i uses seed + i * repeats + v."""
+    def text_variants(self, prompts: list[str], frames: list[int], repeats: int, seed: int) -> list[list[np.ndarray]]:
+        """``repeats`` generations per prompt; variant v of prompt i uses seed + i * repeats + v."""
         kw = self._kwargs()
         out = []
         for i, (p, n) in enumerate(zip(prompts, frames)):
@@ -235,7 +235,7 @@ class PipelineGenerator:
 
 
 def _accepts_seed_list(pipe) -> bool:
-    """Whether pipe(..., seed=[...]) gives each row its own seed (probed once, on 2 short rows)."""
+    """Whether pipe(..., seed=[...]) gives each row its own seed (read from the ``seed`` annotation)."""
     try:
         sig = inspect.signature(pipe.__call__)
         ann = str(sig.parameters["seed"].annotation) if "seed" in sig.parameters else ""
@@ -282,7 +282,7 @@ def _draw(clips, rng, settings: EvalSettings, frame_range, fps, *, need_action: 
     return pairs
 
 
-def _t2m_scores(evaluator, motion_emb, text_emb, ref_emb, settings, rng) -> dict:
+def _t2m_scores(motion_emb, text_emb, ref_emb, settings, rng) -> dict:
     pool = min(settings.r_pool, len(motion_emb))
     hits, mm_dist = metrics.r_precision(text_emb, motion_emb, batch_size=pool, rng=rng)
     return {"R@1": hits[0], "R@2": hits[1], "R@3": hits[2], "MM-Dist": mm_dist,
@@ -348,11 +348,11 @@ def evaluate(task: str, evaluator, clips: Sequence, generator: PipelineGenerator
                     return {}
                 return {"Content-Acc": metrics.accuracy(evaluator.classify([feats[i] for i in labelled]), labels)}
 
-            rows.add("Real", {**_t2m_scores(evaluator, real_emb, text_emb, ref_emb, settings,
+            rows.add("Real", {**_t2m_scores(real_emb, text_emb, ref_emb, settings,
                                             np.random.default_rng([rep, 1])), **content_acc(real_feats)})
             gen = generator.text(texts, frames, gen_seed)
             gen_emb = evaluator.encode_motion(gen)
-            scores = _t2m_scores(evaluator, gen_emb, text_emb, ref_emb, settings, np.random.default_rng([rep, 1]))
+            scores = _t2m_scores(gen_emb, text_emb, ref_emb, settings, np.random.default_rng([rep, 1]))
             scores.update(content_acc(gen))
             if settings.mm_texts > 0 and settings.mm_repeats >= settings.mm_times:
                 pick = rng.choice(len(pairs), min(settings.mm_texts, len(pairs)), replace=False)

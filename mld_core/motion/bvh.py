@@ -21,12 +21,13 @@ from __future__ import annotations
 
 import os
 import re
-import tempfile
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from mld_core.fileio import atomic_write
 
 __all__ = [
     "BVHError",
@@ -598,18 +599,11 @@ def write_bvh(
     row = " ".join([f"%.{precision}f"] * table.shape[1])
     body = "\n".join(row % tuple(r) for r in table)
 
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=str(path.parent) or ".")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
+    def write(tmp: str) -> None:
+        with open(tmp, "w", encoding="utf-8", newline="\n") as f:
             f.write("\n".join(lines))
             f.write("\n")
             f.write(body)
             f.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+
+    atomic_write(path, write)

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mld_core.checkpoint import _atomic_write
+from mld_core.fileio import atomic_write
 
 STATE_FILE = "train_state.pt"
 
@@ -30,7 +30,7 @@ def save_train_state(run: Path, model: torch.nn.Module, optimizer: torch.optim.O
     """Everything --resume needs, as tensors and plain values (loadable with weights_only=True)."""
     state = {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
              "torch_rng": torch.get_rng_state(), "extra": json.dumps(extra or {})}
-    _atomic_write(Path(run) / STATE_FILE, lambda tmp: torch.save(state, tmp))
+    atomic_write(Path(run) / STATE_FILE, lambda tmp: torch.save(state, tmp))
 
 
 def load_train_state(run: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer) -> tuple[int, dict]:
