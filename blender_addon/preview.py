@@ -128,13 +128,6 @@ class _Stage:
         return False
 
 
-def _umask_mode(path) -> None:
-    """mkstemp makes 0600 files; give the output the usual permissions (0666 minus the umask)."""
-    mask = os.umask(0)
-    os.umask(mask)
-    os.chmod(path, 0o666 & ~mask)
-
-
 def _read_png(path: str) -> np.ndarray:
     image = bpy.data.images.load(path, check_existing=False)
     try:
@@ -182,16 +175,9 @@ def render_strip(scene, armature, out_path, frames: list[int], *, engine: str = 
     for tile in tiles:
         parts += [tile, gap]
     strip = np.concatenate(parts[:-1], axis=1)
-    fd, tmp_png = tempfile.mkstemp(dir=out_path.parent, prefix=f".{out_path.stem}.", suffix=".png")
-    os.close(fd)
-    try:
-        _write_png(Path(tmp_png), strip, scene)
-        _umask_mode(tmp_png)
-        os.replace(tmp_png, out_path)
-    finally:
-        if os.path.exists(tmp_png):
-            os.unlink(tmp_png)
-    return out_path
+    from mld_core.fileio import atomic_write
+
+    return atomic_write(out_path, lambda tmp: _write_png(Path(tmp), strip, scene), suffix=".png")
 
 
 def render_preview(scene, armature, out_path, *, count: int = 5, frame_start=None, frame_end=None) -> Path:

@@ -14,11 +14,12 @@ def _umask() -> int:
     return mask
 
 
-def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
+def atomic_write(path: str | os.PathLike, write: Callable[[str], None], suffix: str = ".tmp") -> Path:
     """Call ``write(tmp_path)``, give the file ordinary permissions (0666 minus the umask; mkstemp makes 0600),
-    then rename it onto ``path``. On any error the temporary file is removed and ``path`` is left untouched."""
+    then rename it onto ``path``. On any error the temporary file is removed and ``path`` is left untouched.
+    ``suffix`` names the temporary file for writers that pick a format from the name."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
     os.close(fd)
     try:
         write(tmp)
