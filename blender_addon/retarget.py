@@ -656,9 +656,10 @@ def _bend_weight(u: np.ndarray, v: np.ndarray, lo_deg: float = 10.0, hi_deg: flo
 def twist_reference(joint: str, p: Mapping[str, np.ndarray], rest: bool) -> tuple[np.ndarray, np.ndarray] | None:
     """The twist reference axis (..., 3) of a joint's bone and its confidence weight (...), or None (swing only).
 
-    ``p`` maps the mapped joints' names to positions (the same joints on the source and on the rest). ``rest=True`` computes it on a rig's rest pose, where limbs may be
-    straight: the hinge axis is then the anatomical one (perpendicular to the limb and the body's facing), which has
-    the sign the measured hinge has when an elbow or knee bends the natural way.
+    ``p`` maps the mapped joints' names to positions (the same joints on the source and on the rest).
+    ``rest=True`` computes it on a rig's rest pose, where limbs may be straight: the hinge axis is then the
+    anatomical one (perpendicular to the limb and the body's facing), which has the sign the measured hinge has
+    when an elbow or knee bends the natural way.
     """
     ax = _body_axes(p)
     one = np.ones(ax["up"].shape[:-1])
@@ -833,7 +834,8 @@ def retarget(
             # Place the pelvis so that the rig's hip midpoint lands on the scaled source hips' midpoint.
             local_loc[b] = np.zeros((T, 3))
             pose_cache.clear()
-            hips_now = (pose(rig.index(bone_of["left_hip"]))[:, :3, 3] + pose(rig.index(bone_of["right_hip"]))[:, :3, 3]) / 2
+            left, right = rig.index(bone_of["left_hip"]), rig.index(bone_of["right_hip"])
+            hips_now = (pose(left)[:, :3, 3] + pose(right)[:, :3, 3]) / 2
             hips_src = (sp["left_hip"] + sp["right_hip"]) / 2
             local_loc[b] = np.einsum("tji,tj->ti", Crot, hips_src - hips_now)  # Crot^T @ delta
             pose_cache.clear()
@@ -969,8 +971,10 @@ def fidelity(result: RetargetResult, target_joints: Mapping[str, np.ndarray] | N
     pelvis) on the rig vs the source's, the source limb scaled to the rig's limb length; divided by that length
     (a fraction: 0.05 = 5% of limb length), averaged over frames; ``*_global`` the same for world positions
     against the placed source. Feet: ``sink_cm`` is the most any foot joint (ankles, toes) of the rig goes below
-    its rest height above the floor (rigs whose rest stands; else below the same source joint). Direction: heading error from the hips' lateral
-    axis (mean, degrees), total turn of source and rig, and the angle between their net travel directions.
+    the same joint of the placed source while that joint is down at the floor; ``below_rest_height_cm`` (rigs
+    whose rest stands) the most a foot joint goes below its rest height above the floor. Direction: heading error
+    from the hips' lateral axis (mean, degrees), total turn of source and rig, and the angle between their net
+    travel directions.
     ``target_joints`` (joint -> (T, 3) world positions) replaces the rig's FK, e.g. with Blender's own evaluation.
     """
     wj = result.world_joints() if target_joints is None else target_joints
@@ -1000,9 +1004,14 @@ def fidelity(result: RetargetResult, target_joints: Mapping[str, np.ndarray] | N
     feet = [j for j in FOOT_JOINTS if j in wj]
     standing = standing_heights(result.rig, dict(zip(result.joints, result.bones)))
     floor = result.rig.object_matrix[2, 3]
-    # Sinking: how far a foot joint of the rig goes below the same joint of the placed source (whose feet stand
-    # on the floor, lifted or lowered to the rig's standing ankle height when the rig's rest stands).
-    sink = max(float(np.max(src[:, J[j], 2] - wj[j][:, 2])) for j in feet)
+    # Sinking: while a foot joint is down at the floor in the placed source (within 3 cm of its lowest 5%; the
+    # source's feet stand on the floor, lifted or lowered to the rig's standing ankle height when the rig's rest
+    # stands), how far the rig's same joint goes below it. A foot up in the air is not sinking.
+    sink = 0.0
+    for j in feet:
+        z_src = src[:, J[j], 2]
+        down = z_src <= np.percentile(z_src, 5) + 0.03 * result.scale
+        sink = max(sink, float(np.max(z_src[down] - wj[j][down, 2])))
     out["sink_cm"] = max(0.0, sink) * 100
     if standing is not None:
         # Also: how far a foot joint goes below its own rest height above the floor (the sole going under, for

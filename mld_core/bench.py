@@ -15,6 +15,7 @@ output says which. FLOPs are counted with ``torch.utils.flop_counter`` for one s
 from __future__ import annotations
 
 import json
+import os
 import platform
 import time
 from dataclasses import replace
@@ -313,6 +314,7 @@ def run_bench(model=None, *, baseline: str | None = None, prompts: int = 32, sec
     texts = _prompts(prompts)
     cond = pipe.denoiser.config.cond
     result = {"model_id": pipe.model_id, "seconds": seconds, "frames": frames, "prompts": prompts,
+              "load_before": _load_average(), "cpus": os.cpu_count(),
               "threads": torch.get_num_threads(), "torch": torch.__version__, "machine": platform.machine(),
               "processor": platform.processor() or platform.machine(), "guidance_scale": guidance, "methods": []}
 
@@ -355,12 +357,28 @@ def run_bench(model=None, *, baseline: str | None = None, prompts: int = 32, sec
                                    progress=progress)
         ddpm["flops"] = raw_flops(raw, texts[0], 1000, guidance_scale)
         result["methods"] += [ddim, ddpm]
+    result["load_after"] = _load_average()
     base1, base32 = mld["batch1"]["aits_s"], mld["batch32"]["aits_s"]
     for m in result["methods"]:
         m["ratio_batch1"] = m["batch1"]["aits_s"] / base1
         m["ratio_batch32"] = m["batch32"]["aits_s"] / base32
         m["flops_ratio"] = m["flops"]["total"] / mld["flops"]["total"]
     return result
+
+
+def _load_average() -> float | None:
+    try:
+        return round(os.getloadavg()[0], 2)
+    except (AttributeError, OSError):  # not on every platform
+        return None
+
+
+def busy_note(load: float | None, cpus: int | None) -> str | None:
+    """A warning when other work was running: timings on a busy machine are inflated."""
+    if load is None or not cpus or load <= 0.75 * cpus:
+        return None
+    return (f"WARNING: the machine was busy (1-minute load {load:.1f} on {cpus} CPUs): "
+            "times include waiting for other processes; re-run on an idle machine for the real AITS.")
 
 
 def _gflops(flops: float) -> str:
@@ -396,7 +414,9 @@ def format_bench(result: dict) -> str:
         lines.append("The raw-motion baseline has UNTRAINED (random) weights: its rows measure speed and FLOPs only. "
                      "It is MLD's denoiser (same width, depth, skips, conditioning, guidance) run on the "
                      f"{result['frames']} x 263 frames instead of the latent tokens.")
-    return "\n".join(lines + notes)
+    load = max([x for x in (result.get("load_before"), result.get("load_after")) if x is not None], default=None)
+    note = busy_note(load, result.get("cpus"))
+    return "\n".join(lines + notes + ([note] if note else []))
 
 
 def register(groups) -> None:

@@ -87,3 +87,12 @@ def test_bench_cli_rejects_bad_arguments(capsys):
     assert main(["bench", "--prompts", "0"]) == 2
     assert "--prompts" in capsys.readouterr().err
     assert main(["bench", "--model", "/nonexistent/model"]) == 2
+
+
+def test_busy_note_warns_only_when_load_exceeds_the_cpus():
+    from mld_core.bench import busy_note
+
+    assert busy_note(0.5, 2) is None
+    assert busy_note(None, 2) is None
+    note = busy_note(7.2, 2)
+    assert note.startswith("WARNING") and "7.2 on 2 CPUs" in note

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 
@@ -164,7 +165,12 @@ def run_evaluate(args: argparse.Namespace) -> int:
     result.update(data=str(root), model=str(args.model or "default"), model_id=pipe.model_id,
                   evaluator=str(args.evaluator or "default"))
     print(format_table(result))
-    print(f"({result['seconds']:.0f} s)")
+    print(f"({result['seconds']:.0f} s wall, {result['cpu_seconds']:.0f} s CPU)")
+    from mld_core.bench import busy_note
+
+    note = busy_note(result.get("load"), os.cpu_count())
+    if note:
+        print(note)
     if args.json:
         write_json(result, args.json)
         print(f"wrote {args.json}")

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import inspect
 import json
+import os
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -297,7 +298,8 @@ def evaluate(task: str, evaluator, clips: Sequence, generator: PipelineGenerator
 
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r}; choose one of {', '.join(TASKS)}")
-    started = time.monotonic()
+    started, cpu_started = time.monotonic(), time.process_time()
+    load_before = _load_average()
     fps = generator.fps
     lo, hi = generator.frame_range
     frame_range = (max(lo, 4), min(hi, evaluator.config.max_frames))
@@ -404,7 +406,16 @@ def evaluate(task: str, evaluator, clips: Sequence, generator: PipelineGenerator
     bar.close()
     return {"task": task, "rows": rows.summary(), "order": ["Real", model_name], "settings": settings.to_dict(),
             "pairs_per_replication": len(pairs), "reference_pairs": len(ref_pairs),
-            "frame_range": list(frame_range), "seconds": round(time.monotonic() - started, 1)}
+            "frame_range": list(frame_range), "seconds": round(time.monotonic() - started, 1),
+            "cpu_seconds": round(time.process_time() - cpu_started, 1), "load": max(
+                [x for x in (load_before, _load_average()) if x is not None], default=None)}
+
+
+def _load_average() -> float | None:
+    try:
+        return round(os.getloadavg()[0], 2)
+    except (AttributeError, OSError):
+        return None
 
 
 # --------------------------------------------------------------------------------------------------
