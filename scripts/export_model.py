@@ -87,6 +87,7 @@ def main(argv=None) -> int:
         save_model(tmp, config, vae, den, dtype=torch.float16, card=card)
         if args.out.exists():
             shutil.rmtree(args.out)
+        tmp.chmod(0o755)
         tmp.rename(args.out)
     finally:
         if tmp.exists():

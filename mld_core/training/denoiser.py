@@ -255,7 +255,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
             for pe, p in zip(ema.parameters(), denoiser.parameters()):
                 pe.lerp_(p, 1 - decay)
         step += 1
-        running = float(loss) if running is None else 0.98 * running + 0.02 * float(loss)
+        running = loss.item() if running is None else 0.98 * running + 0.02 * loss.item()
         bar.update(1)
         bar.set_postfix(loss=f"{running:.4f}")
         if step % cfg.save_every == 0 or budget.done(step):
