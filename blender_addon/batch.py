@@ -135,7 +135,7 @@ def write_bvh(path: Path, take) -> None:
         path,
         list(skeleton.JOINT_NAMES),
         list(skeleton.PARENTS),
-        np.asarray(getattr(skeleton, "REST_OFFSETS", skeleton.REFERENCE_OFFSETS)) * 100.0,
+        np.asarray(skeleton.REST_OFFSETS) * 100.0,
         np.asarray(take.root_positions) * 100.0,
         np.asarray(take.local_quats),
         1.0 / take.fps,

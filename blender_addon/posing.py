@@ -6,7 +6,7 @@ Conventions
   faces -Y (its left still on +X). ``AXES`` maps one to the other: (x, y, z) -> (x, -z, y), a proper
   rotation (+90 degrees about X).
 - Local rotations (T, J, 4) are unit quaternions (w, x, y, z) in the model frame, one per joint, relative
-  to the parent joint, on the rest pose of the canonical skeleton (``REFERENCE_OFFSETS``: every rest frame
+  to the parent joint, on the rest pose of the canonical skeleton (``REST_OFFSETS``: every rest frame
   is aligned with the world). FK: ``G_j = G_parent(j) @ R(q_j)`` and ``p_j = p_parent(j) + G_parent(j) @
   offset_j`` (the rotation of a joint moves its children, as a Blender bone does).
 - A Blender pose bone j with rest matrix ``B_j`` (3x3, armature space) and head ``h_j`` evaluates
@@ -89,21 +89,10 @@ def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def slerp(q0: np.ndarray, q1: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Spherical interpolation of unit quaternions; ``t`` broadcasts against q[..., 0]."""
-    q0 = np.asarray(q0, np.float64)
-    q1 = np.asarray(q1, np.float64)
-    t = np.asarray(t, np.float64)[..., None]
-    dot = np.sum(q0 * q1, axis=-1, keepdims=True)
-    q1 = np.where(dot < 0, -q1, q1)
-    dot = np.abs(dot)
-    theta = np.arccos(np.clip(dot, -1.0, 1.0))
-    sin = np.sin(theta)
-    small = sin < 1e-6
-    safe = np.where(small, 1.0, sin)
-    w0 = np.where(small, 1.0 - t, np.sin((1.0 - t) * theta) / safe)
-    w1 = np.where(small, t, np.sin(t * theta) / safe)
-    out = w0 * q0 + w1 * q1
-    return out / np.linalg.norm(out, axis=-1, keepdims=True)
+    """Spherical interpolation of unit quaternions (mld_core's, imported when first needed)."""
+    from mld_core.motion.quaternion import slerp as _slerp
+
+    return _slerp(q0, q1, t)
 
 
 def make_continuous(quats: np.ndarray, axis: int = 0) -> np.ndarray:
@@ -163,7 +152,7 @@ def canonical_rig():
     """(names, parents, rest heads (22, 3), rest tails (22, 3)) of the canonical armature, Blender axes."""
     from mld_core.motion import skeleton as sk
 
-    offsets = getattr(sk, "REST_OFFSETS", sk.REFERENCE_OFFSETS)  # the rest pose the rotations are relative to
+    offsets = sk.REST_OFFSETS  # the rest pose the rotations are relative to
     heads = rest_heads(offsets, sk.PARENTS)
     return tuple(sk.JOINT_NAMES), tuple(int(p) for p in sk.PARENTS), heads, rest_tails(heads, sk.PARENTS, sk.JOINT_NAMES)
 

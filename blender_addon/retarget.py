@@ -371,7 +371,7 @@ def canonical_rig(offsets: np.ndarray | None = None, *, leaf_length: float = 0.0
     the tail of the parent is the head of the child.
     """
     if offsets is None:  # the rest pose the motion's rotations refer to, where the skeleton module defines one
-        offsets = getattr(_sk, "REST_OFFSETS", _sk.REFERENCE_OFFSETS)
+        offsets = _sk.REST_OFFSETS
     offsets = np.asarray(offsets, dtype=np.float64)
     n = len(JOINT_NAMES)
     pos = np.zeros((n, 3))
