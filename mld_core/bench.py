@@ -378,7 +378,7 @@ def busy_note(load: float | None, cpus: int | None) -> str | None:
     if load is None or not cpus or load <= 0.75 * cpus:
         return None
     return (f"WARNING: the machine was busy (1-minute load {load:.1f} on {cpus} CPUs): "
-            "times include waiting for other processes; re-run on an idle machine for the real AITS.")
+            "times include waiting for other processes; re-run on an idle machine for representative timings.")
 
 
 def _gflops(flops: float) -> str:
