@@ -314,7 +314,7 @@ def run_bench(model=None, *, baseline: str | None = None, prompts: int = 32, sec
     texts = _prompts(prompts)
     cond = pipe.denoiser.config.cond
     result = {"model_id": pipe.model_id, "seconds": seconds, "frames": frames, "prompts": prompts,
-              "load_before": _load_average(), "cpus": os.cpu_count(),
+              "cpus": os.cpu_count(),
               "threads": torch.get_num_threads(), "torch": torch.__version__, "machine": platform.machine(),
               "processor": platform.processor() or platform.machine(), "guidance_scale": guidance, "methods": []}
 
@@ -334,6 +334,7 @@ def run_bench(model=None, *, baseline: str | None = None, prompts: int = 32, sec
         timed_pipe = _ActionPipe(pipe)
     else:
         timed_pipe = pipe
+    other_load = OtherLoad()
     mld = {"name": "MLD", "scheduler": f"DDIM-{steps}", "steps": steps, "trained": True}
     mld["batch1"] = time_pipeline(timed_pipe, texts, seconds=seconds, batch_size=1, progress=progress, **mld_kw)
     mld["batch32"] = time_pipeline(timed_pipe, texts, seconds=seconds, batch_size=32, progress=progress, **mld_kw)
@@ -357,7 +358,7 @@ def run_bench(model=None, *, baseline: str | None = None, prompts: int = 32, sec
                                    progress=progress)
         ddpm["flops"] = raw_flops(raw, texts[0], 1000, guidance_scale)
         result["methods"] += [ddim, ddpm]
-    result["load_after"] = _load_average()
+    result["other_cpus"] = other_load.cpus()
     base1, base32 = mld["batch1"]["aits_s"], mld["batch32"]["aits_s"]
     for m in result["methods"]:
         m["ratio_batch1"] = m["batch1"]["aits_s"] / base1
@@ -366,19 +367,42 @@ def run_bench(model=None, *, baseline: str | None = None, prompts: int = 32, sec
     return result
 
 
-def _load_average() -> float | None:
-    try:
-        return round(os.getloadavg()[0], 2)
-    except (AttributeError, OSError):  # not on every platform
-        return None
+class OtherLoad:
+    """How many CPUs other processes kept busy while a measurement ran (Linux /proc/stat; else None).
+
+    busy CPU time of the whole machine minus this process's own CPU time, divided by the wall time.
+    """
+
+    def __init__(self):
+        self.start = self._snapshot()
+
+    @staticmethod
+    def _snapshot():
+        try:
+            with open("/proc/stat") as fh:
+                fields = [int(x) for x in fh.readline().split()[1:]]
+            tick = os.sysconf("SC_CLK_TCK")
+        except (OSError, ValueError, AttributeError):
+            return None
+        idle = fields[3] + (fields[4] if len(fields) > 4 else 0)  # idle + iowait
+        busy = (sum(fields[:8]) - idle) / tick  # user..steal, without guest (already in user)
+        own = time.process_time()
+        return busy, own, time.monotonic()
+
+    def cpus(self) -> float | None:
+        end = self._snapshot()
+        if self.start is None or end is None or end[2] - self.start[2] <= 0:
+            return None
+        others = (end[0] - self.start[0]) - (end[1] - self.start[1])
+        return round(max(0.0, others / (end[2] - self.start[2])), 2)
 
 
-def busy_note(load: float | None, cpus: int | None) -> str | None:
-    """A warning when other work was running: timings on a busy machine are inflated."""
-    if load is None or not cpus or load <= 0.75 * cpus:
+def busy_note(other_cpus: float | None, cpus: int | None) -> str | None:
+    """A warning when other processes used more than a quarter of the machine during a measurement."""
+    if other_cpus is None or not cpus or other_cpus <= 0.25 * cpus:
         return None
-    return (f"WARNING: the machine was busy (1-minute load {load:.1f} on {cpus} CPUs): "
-            "times include waiting for other processes; re-run on an idle machine for representative timings.")
+    return (f"WARNING: other processes kept {other_cpus:.1f} of the {cpus} CPUs busy during this run: "
+            "times include waiting for them; re-run on an idle machine for representative timings.")
 
 
 def _gflops(flops: float) -> str:
@@ -414,8 +438,7 @@ def format_bench(result: dict) -> str:
         lines.append("The raw-motion baseline has UNTRAINED (random) weights: its rows measure speed and FLOPs only. "
                      "It is MLD's denoiser (same width, depth, skips, conditioning, guidance) run on the "
                      f"{result['frames']} x 263 frames instead of the latent tokens.")
-    load = max([x for x in (result.get("load_before"), result.get("load_after")) if x is not None], default=None)
-    note = busy_note(load, result.get("cpus"))
+    note = busy_note(result.get("other_cpus"), result.get("cpus"))
     return "\n".join(lines + notes + ([note] if note else []))
 
 

@@ -89,10 +89,14 @@ def test_bench_cli_rejects_bad_arguments(capsys):
     assert main(["bench", "--model", "/nonexistent/model"]) == 2
 
 
-def test_busy_note_warns_only_when_load_exceeds_the_cpus():
-    from mld_core.bench import busy_note
+def test_busy_note_and_other_load():
+    from mld_core.bench import OtherLoad, busy_note
 
-    assert busy_note(0.5, 2) is None
+    assert busy_note(0.4, 2) is None
     assert busy_note(None, 2) is None
-    note = busy_note(7.2, 2)
-    assert note.startswith("WARNING") and "7.2 on 2 CPUs" in note
+    note = busy_note(1.5, 2)
+    assert note.startswith("WARNING") and "1.5 of the 2 CPUs" in note
+    probe = OtherLoad()
+    sum(i * i for i in range(200_000))  # our own work does not count as other load
+    value = probe.cpus()
+    assert value is None or value >= 0.0

@@ -168,7 +168,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     print(f"({result['seconds']:.0f} s wall, {result['cpu_seconds']:.0f} s CPU)")
     from mld_core.bench import busy_note
 
-    note = busy_note(result.get("load"), os.cpu_count())
+    note = busy_note(result.get("other_cpus"), os.cpu_count())
     if note:
         print(note)
     if args.json:

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import inspect
 import json
-import os
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -298,8 +297,10 @@ def evaluate(task: str, evaluator, clips: Sequence, generator: PipelineGenerator
 
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r}; choose one of {', '.join(TASKS)}")
+    from mld_core.bench import OtherLoad
+
     started, cpu_started = time.monotonic(), time.process_time()
-    load_before = _load_average()
+    other_load = OtherLoad()
     fps = generator.fps
     lo, hi = generator.frame_range
     frame_range = (max(lo, 4), min(hi, evaluator.config.max_frames))
@@ -407,15 +408,7 @@ def evaluate(task: str, evaluator, clips: Sequence, generator: PipelineGenerator
     return {"task": task, "rows": rows.summary(), "order": ["Real", model_name], "settings": settings.to_dict(),
             "pairs_per_replication": len(pairs), "reference_pairs": len(ref_pairs),
             "frame_range": list(frame_range), "seconds": round(time.monotonic() - started, 1),
-            "cpu_seconds": round(time.process_time() - cpu_started, 1), "load": max(
-                [x for x in (load_before, _load_average()) if x is not None], default=None)}
-
-
-def _load_average() -> float | None:
-    try:
-        return round(os.getloadavg()[0], 2)
-    except (AttributeError, OSError):
-        return None
+            "cpu_seconds": round(time.process_time() - cpu_started, 1), "other_cpus": other_load.cpus()}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -434,7 +427,7 @@ def format_table(result: dict) -> str:
         for key, _, _ in cols:
             if key in vals:
                 v = vals[key]
-                digits = 1 if key in ("MPJPE", "PA-MPJPE", "MPJPE_global") else 3
+                digits = {"MPJPE": 1, "PA-MPJPE": 1, "MPJPE_global": 1, "KID": 4}.get(key, 3)
                 cells.append(f"{v['mean']:.{digits}f}\u00b1{v['ci']:.{digits}f}")
             else:
                 cells.append("-")
