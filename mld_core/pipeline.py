@@ -147,9 +147,10 @@ class MLDPipeline:
     @torch.inference_mode()
     def __call__(self, prompts: str | Sequence[str], seconds: float | Sequence[float] = 4.0, *,
                  actions: Sequence | None = None, num_inference_steps: int | None = None,
-                 guidance_scale: float | None = None, seed: int = 0, num_variants: int = 1,
+                 guidance_scale: float | None = None, seed: int | Sequence[int] = 0, num_variants: int = 1,
                  callback: Callable[[int, int], bool | None] | None = None, unconditional: bool = False) -> MLDOutput:
-        """Generate ``num_variants`` motions per prompt; row i*num_variants + v uses seed ``seed + v``.
+        """Generate ``num_variants`` motions per prompt; row i*num_variants + v uses seed ``seed + v``, or
+        ``seed[i] + v`` when ``seed`` is a sequence (one per prompt). Any row equals the single run with its seed.
         ``unconditional`` samples with the null condition (the prompts then only label the rows)."""
         if self.denoiser is None:
             raise CheckpointError("this model folder has only a VAE; sample with sample_prior() or train a denoiser")
@@ -178,7 +179,8 @@ class MLDPipeline:
         rows = [(i, v) for i in range(n_prompts) for v in range(num_variants)]
         row_prompts = [prompts[i] for i, _ in rows]
         row_actions = [actions[i] for i, _ in rows] if actions is not None else None
-        seeds = [int(seed) + v for _, v in rows]
+        base = [int(x) for x in _as_list(int(seed) if isinstance(seed, np.integer) else seed, n_prompts, "seed")]
+        seeds = [base[i] + v for i, v in rows]
         lengths = torch.tensor([frames[i] for i, _ in rows], device=self.device)
         B = len(rows)
 

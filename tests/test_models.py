@@ -174,6 +174,16 @@ def test_pipeline_shapes_determinism_and_seeds(pipe):
     assert not np.allclose(out.features[0, :40], out.features[1, :40])
 
 
+def test_per_prompt_seeds_equal_single_runs(pipe):
+    both = pipe(["a person walks", "a person jumps high"], seconds=[2.0, 1.5], seed=[5, 11], num_variants=2,
+                num_inference_steps=2)
+    assert both.seeds == [5, 6, 11, 12]
+    one = pipe(["a person jumps high"], seconds=1.5, seed=12, num_inference_steps=2)
+    np.testing.assert_allclose(both.features[3, :30], one.features[0, :30], atol=1e-4)
+    with pytest.raises(ValueError, match="seed has 3 entries"):
+        pipe(["a", "b"], seed=[1, 2, 3], num_inference_steps=1)
+
+
 def test_batch_of_two_equals_two_single_runs(pipe):
     both = pipe(["a person walks", "a person jumps high"], seconds=2.0, seed=7, num_inference_steps=3)
     one = pipe(["a person walks"], seconds=2.0, seed=7, num_inference_steps=3)

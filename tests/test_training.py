@@ -80,7 +80,8 @@ def test_train_vae_then_denoiser_then_generate(folder, tmp_path):
     cfg_den.write_text(json.dumps(TINY_DEN))
     den_run = tmp_path / "mld"
     assert main(["train", "denoiser", "--data", str(folder), "--vae", str(vae_run), "--out", str(den_run),
-                 "--steps", "40", "--threads", "1", "--config", str(cfg_den), "--lr", "1e-3"]) == 0
+                 "--steps", "40", "--threads", "1", "--config", str(cfg_den), "--lr", "1e-3", "--bf16"]) == 0
+    assert json.loads((den_run / "train_config.json").read_text())["bf16"] is True
     losses = [json.loads(line)["loss"] for line in (den_run / "log.jsonl").read_text().splitlines()]
     assert len(losses) == 4 and losses[-1] < losses[0]
     pipe = MLDPipeline.from_pretrained(den_run)
@@ -88,12 +89,13 @@ def test_train_vae_then_denoiser_then_generate(folder, tmp_path):
     assert out.joints.shape == (1, 30, 22, 3) and np.isfinite(out.joints).all()
 
 
-def test_vae_loss_falls_on_the_tiny_folder(folder, tmp_path):
+@pytest.mark.parametrize("bf16", [False, True])
+def test_vae_loss_falls_on_the_tiny_folder(folder, tmp_path, bf16):
     cfg = tmp_path / "vae.json"
     cfg.write_text(json.dumps({**TINY_VAE, "val_every": 30}))
     run = tmp_path / "vae"
     assert main(["train", "vae", "--data", str(folder), "--out", str(run), "--steps", "60", "--threads", "1",
-                 "--config", str(cfg), "--lr", "3e-3"]) == 0
+                 "--config", str(cfg), "--lr", "3e-3"] + (["--bf16"] if bf16 else [])) == 0
     first = json.loads((run / "log.jsonl").read_text().splitlines()[0])
     last = json.loads((run / "log.jsonl").read_text().splitlines()[-1])
     assert last["val_mpjpe_mm"] < first["val_mpjpe_mm"] or last["mse"] < first["mse"]

@@ -91,6 +91,7 @@ class MotionVAE(nn.Module):
     def loss(self, x: torch.Tensor, lengths: torch.Tensor) -> tuple[torch.Tensor, dict]:
         """MSE on valid frames of normalised features + kl_weight * KL(q(z|x) || N(0, I))."""
         recon, mu, logvar = self(x, lengths)
+        recon, mu, logvar = recon.float(), mu.float(), logvar.float()  # the loss in fp32 under autocast too
         valid = ~padding_mask(lengths, x.shape[1])  # (B, T)
         mse = ((recon - x) ** 2).mean(-1)[valid].mean()
         kl = (-0.5 * (1 + logvar - mu**2 - logvar.exp())).sum(-1).mean()

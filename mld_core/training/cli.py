@@ -17,6 +17,7 @@ def _common(p) -> None:
     p.add_argument("--lr", type=float, default=None)
     p.add_argument("--layers", type=int, default=None, help="transformer layers (odd with skips)")
     p.add_argument("--no-skip", action="store_true", help="turn the long skip connections off")
+    p.add_argument("--bf16", action="store_true", help="bfloat16 autocast (about 2x faster on CPUs with AVX512-BF16 or AMX)")
     p.add_argument("--config", type=Path, default=None, help="JSON overrides of the stage's config dataclass")
 
 
@@ -70,6 +71,7 @@ def run_vae(args) -> int:
                          minutes=args.minutes, vae=vae, **over)
     if args.lr:
         cfg.lr = args.lr
+    cfg.bf16 = cfg.bf16 or args.bf16
     return _run(train_vae, cfg, args.resume)
 
 
@@ -88,6 +90,7 @@ def run_denoiser(args) -> int:
                               threads=args.threads, steps=args.steps, minutes=args.minutes, denoiser=den, **over)
     if args.lr:
         cfg.lr = args.lr
+    cfg.bf16 = cfg.bf16 or args.bf16
     return _run(train_denoiser, cfg, args.resume)
 
 

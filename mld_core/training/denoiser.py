@@ -52,6 +52,7 @@ class DenoiserTrainConfig:
     balance_power: float = 0.7
     save_every: int = 500
     guidance_scale: float = 4.0
+    bf16: bool = False  # bfloat16 autocast for forward/backward (fp32 weights, optimiser and EMA)
     text_encoder: dict = field(default_factory=lambda: {"kind": "minilm", "path": None})
     denoiser: DenoiserConfig = field(default_factory=DenoiserConfig)
 
@@ -245,7 +246,9 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
             cond = denoiser.condition_tokens(B, actions=label_ids[idx], drop=drop)
         else:
             cond = denoiser.null_tokens(B)
-        loss = torch.nn.functional.mse_loss(denoiser(z_t, t, cond, L), noise)
+        with torch.autocast(z_t.device.type, dtype=torch.bfloat16, enabled=cfg.bf16):
+            pred = denoiser(z_t, t, cond, L)
+        loss = torch.nn.functional.mse_loss(pred.float(), noise)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(denoiser.parameters(), 1.0)

@@ -39,6 +39,7 @@ class VAETrainConfig:
     decay_start: float = 0.5  # cosine learning-rate decay over the second half of the budget (--steps/--minutes)
     val_every: int = 250
     val_clips: int = 200
+    bf16: bool = False  # bfloat16 autocast for forward/backward (fp32 weights and optimiser); ~2x on AVX512-BF16 CPUs
     vae: VAEConfig = field(default_factory=VAEConfig)
 
     def __post_init__(self):
@@ -147,7 +148,8 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
     while not budget.done(step):
         x, lengths = sampler.sample()
         set_lr(opt, cfg.lr * lr_factor(budget.progress(step), cfg.decay_start))
-        loss, parts = vae.loss(x, lengths)
+        with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=cfg.bf16):
+            loss, parts = vae.loss(x, lengths)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(vae.parameters(), 1.0)
