@@ -16,6 +16,18 @@ and ``#`` comments are skipped. Line i uses seed ``--seed + i``. Without ``--arm
 armature; every take is an Action with a fake user. Outputs are written atomically (temporary file, then
 rename); existing outputs are refused without ``--overwrite``. Exit codes: 0 done, 1 failed while running,
 2 bad input.
+
+Keying a user's rig (retargeted through a bone map, see docs/retarget.md)::
+
+    python blender_addon/batch.py --prompts prompts.txt --out takes.blend \
+        --rig character.blend --rig-object Armature [--bone-map map.json] \
+        [--reduce] [--tolerance 0.5] [--rotation-mode QUATERNION|XYZ|...|KEEP] [--foot-lock] [--nla]
+    python blender_addon/batch.py --prompt "a person bows" --out bow.blend --bvh-rig skeleton.bvh --bvh-scale 0.01
+
+``--rig`` appends the objects of a .blend (the armature and its meshes); ``--bvh-rig`` imports a BVH file with
+Blender's own importer (its clip is kept as an Action with a fake user, not assigned). The bone map is
+``--bone-map`` (a JSON file saved by the panel's Save Map...), else the detected one; a map without the
+required bones is bad input (exit 2, nothing written).
 """
 
 from __future__ import annotations
@@ -78,7 +90,107 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--manifest", metavar="JSON", help="manifest path (default: OUT with .json)")
     parser.add_argument("--no-exact", action="store_true", help="key rotations (+ root) only, not bone offsets")
     parser.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    rt = parser.add_argument_group("your own rig (retargeting)")
+    rig_src = rt.add_mutually_exclusive_group()
+    rig_src.add_argument("--rig", metavar="FILE.blend", help="append the objects of this .blend and key its armature")
+    rig_src.add_argument("--bvh-rig", metavar="FILE.bvh", help="import this BVH file (Blender's importer) as the rig")
+    rt.add_argument("--rig-object", metavar="NAME", help="the armature object in --rig (default: its only armature)")
+    rt.add_argument("--bvh-scale", type=float, default=1.0, help="--bvh-rig import scale (1; 0.01 for centimetres)")
+    rt.add_argument("--bone-map", metavar="JSON", help="bone map file (panel: Save Map...); default: detected")
+    rt.add_argument("--reduce", dest="reduce", action="store_true", default=False,
+                    help="key reduction (Bezier keys within --tolerance); routes the canonical rig through it too")
+    rt.add_argument("--no-reduce", dest="reduce", action="store_false", help="a key on every frame (default)")
+    rt.add_argument("--tolerance", type=float, default=0.5, help="key reduction tolerance in degrees (0.5)")
+    rt.add_argument("--rotation-mode", default="QUATERNION", type=str.upper,
+                    help="QUATERNION (default), an Euler order (XYZ, XZY, YXZ, YZX, ZXY, ZYX) or KEEP (each bone's own)")
+    rt.add_argument("--foot-lock", action="store_true", help="hold feet in place while in contact")
+    rt.add_argument("--nla", action="store_true", help="put each take on its own NLA track instead of assigning it")
     return parser
+
+
+def retarget_inputs(args, addon):
+    """(RetargetSettings, BoneMap or None) from the arguments, checked before any work (BatchError)."""
+    wiring = importlib.import_module(addon.__name__ + ".retarget_wiring")
+    bone_maps = importlib.import_module(addon.__name__ + ".bone_maps")
+    try:
+        settings = wiring.RetargetSettings(
+            reduce=args.reduce, tolerance_deg=args.tolerance, rotation_mode=args.rotation_mode,
+            foot_lock=args.foot_lock, nla=args.nla,
+        )
+    except ValueError as exc:
+        raise BatchError(str(exc)) from None
+    if args.rig_object and not args.rig:
+        raise BatchError("--rig-object needs --rig FILE.blend")
+    if (args.rig or args.bvh_rig) and args.armature:
+        raise BatchError("--armature names an object of the open file; with --rig use --rig-object")
+    if args.rig:
+        path = Path(args.rig)
+        if not path.suffix.lower() == ".blend":
+            raise BatchError(f"--rig must name a .blend file, got {path}")
+        if not path.is_file():
+            raise BatchError(f"rig file not found: {path}")
+    if args.bvh_rig:
+        path = Path(args.bvh_rig)
+        if not path.is_file():
+            raise BatchError(f"BVH rig not found: {path}")
+        if not args.bvh_scale > 0:
+            raise BatchError(f"--bvh-scale must be positive, got {args.bvh_scale:g}")
+    bone_map = None
+    if args.bone_map:
+        path = Path(args.bone_map)
+        if not path.is_file():
+            raise BatchError(f"bone map not found: {path}")
+        try:
+            bone_map = bone_maps.BoneMap.load(path)
+        except (bone_maps.BoneMapError, OSError, UnicodeDecodeError, TypeError, ValueError, AttributeError) as exc:
+            raise BatchError(f"--bone-map {path}: {exc}") from None
+    return settings, bone_map
+
+
+def _append_rig(path: Path, name: str | None):
+    """Append every object of ``path`` into the scene; returns the armature named ``name`` (or the only one)."""
+    import bpy
+
+    with bpy.data.libraries.load(str(path), link=False) as (src, dst):
+        dst.objects = list(src.objects)
+    objects = [o for o in dst.objects if o is not None]
+    for obj in objects:
+        if obj.name not in bpy.context.scene.collection.all_objects:
+            bpy.context.scene.collection.objects.link(obj)
+    armatures = [o for o in objects if o.type == "ARMATURE"]
+    if name:
+        found = [o for o in armatures if o.name == name]
+        if not found:
+            raise BatchError(
+                f"{path} has no armature named {name!r}; armatures: {', '.join(o.name for o in armatures) or 'none'}"
+            )
+        return found[0]
+    if len(armatures) != 1:
+        listed = ", ".join(o.name for o in armatures) or "none"
+        raise BatchError(f"{path} has {len(armatures)} armatures ({listed}): name one with --rig-object")
+    return armatures[0]
+
+
+def _import_bvh_rig(path: Path, scale: float):
+    """Import a BVH file with Blender's own importer; its clip stays in the file (fake user), unassigned."""
+    import addon_utils
+    import bpy
+
+    addon_utils.enable("io_anim_bvh", default_set=True)
+    before = set(bpy.data.objects)
+    try:
+        result = bpy.ops.import_anim.bvh(filepath=str(path), global_scale=float(scale))
+    except RuntimeError as exc:
+        raise BatchError(f"Blender could not import {path}: {str(exc).strip()}") from None
+    new = [o for o in bpy.data.objects if o not in before and o.type == "ARMATURE"]
+    if "FINISHED" not in result or not new:
+        raise BatchError(f"Blender could not import {path} as an armature")
+    obj = new[0]
+    ad = obj.animation_data
+    if ad is not None and ad.action is not None:
+        ad.action.use_fake_user = True
+        ad.action = None
+    return obj
 
 
 def output_paths(args, takes_names=()) -> dict:
@@ -159,19 +271,37 @@ def _prepare_scene(args, addon):
         scene.render.fps, scene.render.fps_base = max(1, round(fps)), round(fps) / fps if fps else 1.0
     rig = importlib.import_module(addon.__name__ + ".rig")
     apply = importlib.import_module(addon.__name__ + ".apply")
+    if args.rig:
+        return scene, _append_rig(Path(args.rig), args.rig_object)
+    if args.bvh_rig:
+        return scene, _import_bvh_rig(Path(args.bvh_rig), args.bvh_scale)
     if args.armature:
         obj = bpy.data.objects.get(args.armature)
         if obj is None:
             names = [o.name for o in bpy.data.objects if o.type == "ARMATURE"]
             raise BatchError(f"no object named {args.armature!r}; armatures here: {', '.join(names) or 'none'}")
-        problem = apply.check_target(obj)
-        if problem:
-            raise BatchError(problem)
         return scene, obj
     obj = bpy.data.objects.get(rig.CANONICAL_NAME)
     if obj is not None and rig.is_canonical(obj):
         return scene, obj
     return scene, rig.create_canonical_armature(bpy.context, body=True)
+
+
+def check_rig(obj, bone_map, addon) -> str:
+    """Whether ``obj`` can be keyed (with ``bone_map``, else its detected map); returns the map's source."""
+    apply = importlib.import_module(addon.__name__ + ".apply")
+    rig = importlib.import_module(addon.__name__ + ".rig")
+    wiring = importlib.import_module(addon.__name__ + ".retarget_wiring")
+    if bone_map is not None:
+        problem = wiring.map_problem(bone_map, obj.data.bones.keys(), obj.name)
+        if problem:
+            raise BatchError(problem.replace(". Pick the bones in the Retarget panel (or press Detect)",
+                                             " (fix the --bone-map file)"))
+        return bone_map.source
+    problem = apply.check_target(obj)
+    if problem:
+        raise BatchError(problem)
+    return "canonical" if rig.is_canonical(obj) else apply.bone_map_of(obj).source
 
 
 def run(args) -> int:
@@ -207,9 +337,11 @@ def run(args) -> int:
     missing = env.missing_modules()
     if missing:
         raise BatchError(env.dependency_message(missing))
+    retarget, bone_map = retarget_inputs(args, addon)
 
-    # 2. Scene and armature.
+    # 2. Scene and armature (and whether its bone map can take the motion: before the model loads).
     scene, obj = _prepare_scene(args, addon)
+    map_source = check_rig(obj, bone_map, addon)
 
     # 3. Model (once), then one take per line.
     model_cache, generation, apply = from_pkg("model_cache"), from_pkg("generation"), from_pkg("apply")
@@ -226,7 +358,9 @@ def run(args) -> int:
             raise BatchError(f"line {line.line}: this model makes {min_s:g} to {max_s:g} s, got {request.seconds:g}")
         t0 = time.perf_counter()
         result = generation.generate(pipe, request)
-        report = apply.apply_result(obj, result, scene, exact=not args.no_exact, assign=index == 0)
+        report = apply.apply_result(
+            obj, result, scene, exact=not args.no_exact, assign=index == 0, options=retarget, bone_map=bone_map
+        )
         take = result.takes[0]
         take.name = report.actions[0]
         record = take.summary()
@@ -236,6 +370,9 @@ def run(args) -> int:
             scene_fps=report.fps,
             time_s=round(time.perf_counter() - t0, 4),
             key_s=round(report.key_seconds, 4),
+            keys=report.keys,
+            retargeted=report.retargeted,
+            reduction_ratio=round(report.reduction_ratio, 4),
         )
         if bvh_dir is not None:
             bvh_path = bvh_dir / f"{take.name}.bvh"
@@ -256,6 +393,8 @@ def run(args) -> int:
         "version": 1,
         "blend": str(paths["blend"]),
         "armature": obj.name,
+        "rig": {"blend": args.rig or "", "bvh": args.bvh_rig or "", "bone_map_file": args.bone_map or "",
+                "bone_map": map_source},
         "model_id": getattr(pipe, "model_id", ""),
         "model_dir": model_dir or "",
         "addon_version": env.ADDON_VERSION_STRING,
@@ -266,6 +405,7 @@ def run(args) -> int:
             "guidance": args.guidance,
             "device": args.device,
             "exact": not args.no_exact,
+            "retarget": retarget.to_dict(),
             "scene_fps": apply.scene_fps(scene),
             "frame_start": scene.frame_start,
         },

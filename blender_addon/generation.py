@@ -37,6 +37,7 @@ class Take:
     seconds_generated: float  # wall time of the whole request (shared by its variants)
     name: str = ""
     timings: dict = field(default_factory=dict)
+    contacts: np.ndarray | None = None  # (T, 4) the features' foot-contact channels (> 0.5 = contact)
 
     @property
     def frames(self) -> int:
@@ -134,6 +135,7 @@ def generate(pipe, request: GenerateRequest, callback=None, check_cancel=None) -
             steps=request.steps,
             seconds_generated=generated,
             timings=dict(getattr(out, "timings", {}) or {}),
+            contacts=np.asarray(out.features[row, :n, -4:], np.float64),
         )
         take.name = action_name(request.prompt, request.seed, take.variant, request.variants)
         takes.append(take)

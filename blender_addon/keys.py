@@ -132,3 +132,105 @@ def channels_to_action(
         keep_previous_action(obj)
         writer.assign()
     return action
+
+
+_HANDLE_TYPES = ("FREE", "ALIGNED", "VECTOR", "AUTO", "AUTO_CLAMPED")
+
+
+def _enum_index(struct, prop: str, value: str) -> int:
+    """The integer foreach_set wants for an enum value (read from RNA, so it follows Blender's numbering)."""
+    items = list(struct.bl_rna.properties[prop].enum_items.keys())
+    return items.index(value)
+
+
+def write_baked_curve(fc, frames: np.ndarray, values: np.ndarray, *, interpolation: str, handle_type: str,
+                      auto_smoothing: str = "NONE") -> None:
+    """Add ``len(frames)`` keys to an empty F-curve in bulk with the interpolation and handle types keyedit's
+    key reduction assumed (``auto_smoothing`` first: handles are computed from it when the curve updates)."""
+    if hasattr(fc, "auto_smoothing"):
+        fc.auto_smoothing = auto_smoothing
+    n = len(frames)
+    co = np.empty((n, 2), np.float32)  # (n, [frame, value])
+    co[:, 0] = frames
+    co[:, 1] = values
+    points = fc.keyframe_points
+    points.add(n)
+    points.foreach_set("co", co.ravel())
+    points.foreach_set("interpolation", np.full(n, _enum_index(bpy.types.Keyframe, "interpolation", interpolation), np.int32))
+    handle = np.full(n, _enum_index(bpy.types.Keyframe, "handle_left_type", handle_type), np.int32)
+    points.foreach_set("handle_left_type", handle)
+    points.foreach_set("handle_right_type", handle)
+    fc.update()
+
+
+def set_pose_properties(obj, pose_properties: dict) -> list[str]:
+    """Set a bone map's ``pose_properties`` (e.g. Rigify's IK_FK = 1.0) on the pose bones; returns what was set."""
+    done = []
+    for bone, props in (pose_properties or {}).items():
+        pb = obj.pose.bones.get(bone)
+        if pb is None:
+            continue
+        for key, value in props.items():
+            pb[key] = value
+            done.append(f"{bone}[{key}]")
+    return done
+
+
+def push_to_nla(obj, action, slot, frame_start: float):
+    """Put ``action`` on a new NLA track of ``obj`` as one strip starting at ``frame_start``; returns the strip."""
+    ad = obj.animation_data or obj.animation_data_create()
+    track = ad.nla_tracks.new()
+    track.name = action.name
+    strip = track.strips.new(action.name, int(round(frame_start)), action)
+    if slot is not None and hasattr(strip, "action_slot") and strip.action_slot != slot:
+        strip.action_slot = slot  # Blender 4.4+: a strip plays one slot of its action
+    return strip
+
+
+def baked_to_action(
+    obj,
+    baked,
+    name: str,
+    *,
+    assign: bool = True,
+    nla: bool = False,
+    properties: dict | None = None,
+    pose_properties: dict | None = None,
+):
+    """A new Action holding ``baked`` (``keyedit.BakedKeys``: mapped bones only) for armature ``obj``.
+
+    Sets each keyed pose bone's rotation mode (``baked.rotation_modes``) and the bone map's ``pose_properties``;
+    with ``nla`` the Action goes onto a new NLA track as a strip (the active Action is left alone), otherwise it
+    is assigned if asked (the previous Action keeps a fake user). Returns the Action.
+    """
+    pose_bones = obj.pose.bones
+    bones = sorted({c.group for c in baked.curves})
+    missing = [b for b in bones if b not in pose_bones]
+    if missing:
+        raise ValueError(f"armature {obj.name!r} has no bones named {', '.join(missing)}")
+    action = bpy.data.actions.new(name)
+    action.use_fake_user = True
+    for key, value in (properties or {}).items():
+        action[key] = value
+    writer = ChannelWriter(action, obj)
+    for curve in baked.curves:
+        fc = writer.fcurve(curve.data_path, curve.index, curve.group)
+        write_baked_curve(fc, curve.frames, curve.values, interpolation=baked.interpolation,
+                          handle_type=baked.handle_type, auto_smoothing=baked.auto_smoothing)
+    for bone, mode in baked.rotation_modes.items():
+        if bone in pose_bones:
+            pose_bones[bone].rotation_mode = mode
+    set_pose_properties(obj, pose_properties or {})
+    if nla:
+        push_to_nla(obj, action, writer.slot, baked.frame_start)
+    elif assign:
+        keep_previous_action(obj)
+        writer.assign()
+    return action
+
+
+def action_slot(action):
+    """The (first) slot of an Action made here, or None before Blender 4.4."""
+    if not slotted_actions() or not len(action.slots):
+        return None
+    return action.slots[0]

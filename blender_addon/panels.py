@@ -101,10 +101,16 @@ classes = (MLD_PT_generate,)
 
 
 def register():
+    from . import retarget_ui
+
     for cls in classes:
         bpy.utils.register_class(cls)
+    retarget_ui.register()  # the Retarget sub-panel (after its parent), its operators and Object.mld_retarget
 
 
 def unregister():
+    from . import retarget_ui
+
+    retarget_ui.unregister()
     for cls in reversed(classes):
         bpy.utils.unregister_class(cls)

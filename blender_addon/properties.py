@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import bpy
-from bpy.props import BoolProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+
+from .retarget_wiring import DEFAULT_TOLERANCE_DEG, ROTATION_CHOICES
 
 from .validation import DEFAULT_MAX_SECONDS, DEFAULT_MIN_SECONDS, MAX_STEPS, MAX_VARIANTS, SEED_MAX
 
@@ -61,12 +63,45 @@ class MLD_SceneSettings(bpy.types.PropertyGroup):
         description="Set the scene's end frame to the end of the generated motion",
         default=True,
     )
+    # how keys are written (Retarget sub-panel; blender_addon/retarget_wiring.RetargetSettings)
+    reduce_keys: BoolProperty(
+        name="Reduce Keys",
+        description="Keep only the keys needed to stay within the tolerance on every frame (Bezier, auto-clamped "
+        "handles); off: a key on every frame",
+        default=False,
+    )
+    reduce_tolerance: FloatProperty(
+        name="Tolerance",
+        description="Largest rotation error key reduction may introduce, in degrees (locations: 2 mm)",
+        default=DEFAULT_TOLERANCE_DEG,
+        min=0.01,
+        max=45.0,
+        soft_max=5.0,
+        precision=2,
+    )
+    rotation_mode: EnumProperty(
+        name="Rotation",
+        description="Rotation channels to key",
+        items=[(i, label, desc) for i, label, desc in ROTATION_CHOICES],
+        default="QUATERNION",
+    )
+    foot_lock: BoolProperty(
+        name="Foot Lock",
+        description="Hold a foot in place while the motion says it is on the ground (the leg is re-solved)",
+        default=False,
+    )
+    push_nla: BoolProperty(
+        name="Push to NLA",
+        description="Put each new Action on a new NLA track as a strip instead of assigning it",
+        default=False,
+    )
     # the last outcome (shown in the panel)
     last_message: StringProperty(name="Last Result", default="")
     last_error: StringProperty(name="Last Error", default="")
     last_seconds: FloatProperty(name="Time Taken", default=0.0)
     last_frames: IntProperty(name="Frames", default=0)
     last_actions: StringProperty(name="Actions", default="")
+    last_reduction: FloatProperty(name="Keys Kept", description="Keys kept by key reduction (1: every frame)", default=1.0)
 
 
 classes = (MLD_SceneSettings,)

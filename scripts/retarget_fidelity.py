@@ -51,12 +51,17 @@ def source_from_bvh(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return joints, contacts
 
 
+_PIPE = None
+
+
 def source_from_model(prompt: str, seconds: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
     from mld_core.motion import features as F
     from mld_core.pipeline import MLDPipeline
 
-    pipe = MLDPipeline.from_pretrained()
-    out = pipe([prompt], seconds=seconds, seed=seed)
+    global _PIPE
+    if _PIPE is None:
+        _PIPE = MLDPipeline.from_pretrained()
+    out = _PIPE([prompt], seconds=seconds, seed=seed)
     n = int(out.lengths[0])
     joints = np.asarray(out.joints[0][:n], dtype=np.float64)
     contacts = np.asarray(out.features[0][:n, F.FOOT_CONTACT], dtype=np.float64)
@@ -91,32 +96,13 @@ def build_rigs(bpy, *, bvh_rig: Path, rigify_generated: bool) -> dict:
     return rigs
 
 
-def write_action(bpy, obj, baked, name: str):
-    """Key ``baked`` (keyedit.BakedKeys) onto ``obj`` as a new action (Blender 4.4+ slotted actions)."""
-    action = bpy.data.actions.new(name)
-    slot = action.slots.new(id_type="OBJECT", name=obj.name)
-    strip = action.layers.new("Layer").strips.new(type="KEYFRAME")
-    bag = strip.channelbag(slot, ensure=True)
-    interp = {"BEZIER": 2, "LINEAR": 1}[baked.interpolation]
-    handle = list(bpy.types.Keyframe.bl_rna.properties["handle_left_type"].enum_items.keys()).index(baked.handle_type)
-    for curve in baked.curves:
-        fc = bag.fcurves.new(curve.data_path, index=curve.index)
-        fc.auto_smoothing = baked.auto_smoothing
-        n = len(curve.frames)
-        co = np.empty((n, 2), np.float32)
-        co[:, 0] = curve.frames
-        co[:, 1] = curve.values
-        pts = fc.keyframe_points
-        pts.add(n)
-        pts.foreach_set("co", co.ravel())
-        pts.foreach_set("interpolation", np.full(n, interp, np.int32))
-        pts.foreach_set("handle_left_type", np.full(n, handle, np.int32))
-        pts.foreach_set("handle_right_type", np.full(n, handle, np.int32))
-        fc.update()
-    ad = obj.animation_data or obj.animation_data_create()
-    ad.action = action
-    ad.action_slot = slot
-    return action
+def write_action(bpy, obj, baked, name: str, pose_properties=None):
+    """Key ``baked`` (keyedit.BakedKeys) onto ``obj`` as a new assigned Action with the add-on's own writer
+    (``keys.baked_to_action``: bulk keys, AUTO_CLAMPED handles, auto_smoothing NONE, rotation modes, pose
+    properties)."""
+    from blender_addon import keys
+
+    return keys.baked_to_action(obj, baked, name, assign=True, pose_properties=pose_properties or {})
 
 
 def blender_joint_positions(bpy, obj, joints_to_bones: dict, frames) -> dict:
@@ -157,9 +143,6 @@ def measure(bpy, name: str, obj, joints: np.ndarray, contacts: np.ndarray, take:
     rig = rig_io.read_rig(obj)
     det = bm.detect_bone_map(rig.names, rig.parents)
     det.bone_map.validate(rig.names)
-    for bone, props in det.bone_map.pose_properties.items():
-        for key, value in props.items():
-            obj.pose.bones[bone][key] = value
     t0 = time.perf_counter()
     result = rt.retarget(joints, rig, det.bone_map.joints, parent_overrides=det.bone_map.parent_overrides)
     t_retarget = time.perf_counter() - t0
@@ -168,9 +151,10 @@ def measure(bpy, name: str, obj, joints: np.ndarray, contacts: np.ndarray, take:
     t0 = time.perf_counter()
     baked = ke.bake_keys(result, ke.BakeOptions(fps=fps, frame_start=1, foot_lock=foot_lock), contacts=contacts)
     t_bake = time.perf_counter() - t0
-    for bone, mode in baked.rotation_modes.items():
-        obj.pose.bones[bone].rotation_mode = mode
-    write_action(bpy, obj, baked, f"{take}_{name}")
+    write_action(bpy, obj, baked, f"{take}_{name}", det.bone_map.pose_properties)
+    # keys kept at the default tolerances at other scene rates (numpy only)
+    ratios = {int(r): ke.bake_keys(result, ke.BakeOptions(fps=r, frame_start=1, foot_lock=foot_lock),
+                                    contacts=contacts).stats["reduction_ratio"] for r in (24, 30)}
     frames = baked.frame_start + np.arange(baked.num_frames)
     bl_joints = blender_joint_positions(bpy, obj, dict(zip(result.joints, result.bones)), frames)
     bl = rt.fidelity(result, target_joints=bl_joints)
@@ -192,6 +176,8 @@ def measure(bpy, name: str, obj, joints: np.ndarray, contacts: np.ndarray, take:
         "reduction_max_m": reduction_err,
         "fcurve_model_max_err": fcurve_model_error(bpy, obj, baked),
         "reduction_ratio": baked.stats["reduction_ratio"],
+        "reduction_ratio_24": ratios[24],
+        "reduction_ratio_30": ratios[30],
         "keys": baked.stats["keys"],
         "retarget_s": t_retarget,
         "bake_s": t_bake,
@@ -226,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
                     continue
                 takes[stem] = (stored[key].astype(np.float64), stored[f"{stem}_contacts"].astype(np.float64))
     for i, prompt in enumerate(args.generated):
-        takes[f"generated{i}"] = source_from_model(prompt, args.seconds, seed=i)
+        takes[f"gen{i}: {prompt}"] = source_from_model(prompt, args.seconds, seed=i)
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     rigs = build_rigs(bpy, bvh_rig=args.bvh_rig, rigify_generated=args.rigify_generated)
@@ -237,7 +223,8 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(measure(bpy, name, rigs[name], joints, contacts, take, foot_lock=args.foot_lock))
 
     head = f"{'take':36s} {'rig':15s} {'preset':15s} {'eff fk':>7s} {'eff bl':>7s} {'wristL':>7s} {'ankleL':>7s} {'head':>7s} " \
-           f"{'sink':>5s} {'<rest':>5s} {'face°':>5s} {'turn src/rig':>13s} {'trav°':>5s} {'keys':>5s} {'red mm':>6s} {'fk-bl mm':>8s} {'fc err':>8s}"
+           f"{'sink':>5s} {'<rest':>5s} {'face°':>5s} {'turn src/rig':>13s} {'trav°':>5s} {'keys':>5s} {'k@24':>5s} {'k@30':>5s} " \
+           f"{'red mm':>6s} {'fk-bl mm':>8s} {'fc err':>8s}"
     print(head)
     for r in rows:
         b = r["blender"]
@@ -246,6 +233,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{b['effector_err_mean']:7.2%} {b['left_wrist_err']:7.2%} {b['left_ankle_err']:7.2%} {b['head_err']:7.2%} "
             f"{b['sink_cm']:5.2f} {b.get('below_rest_height_cm', float('nan')):5.2f} {b['facing_err_deg']:5.2f} "
             f"{b['turn_src_deg']:6.1f}/{b['turn_rig_deg']:6.1f} {b['travel_angle_deg']:5.2f} {r['reduction_ratio']:5.2f} "
+            f"{r['reduction_ratio_24']:5.2f} {r['reduction_ratio_30']:5.2f} "
             f"{r['reduction_max_m'] * 1000:6.2f} {r['fk_vs_blender_max_m'] * 1000:8.4f} {r['fcurve_model_max_err']:8.1e}"
         )
     if args.json:

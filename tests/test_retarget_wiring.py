@@ -1,0 +1,214 @@
+"""Wiring retargeting into Generate and the batch (no bpy): options -> keyedit, bone map <-> panel rows, the
+messages that name missing bones, the detection cache, foot contacts of a take, batch argument checks."""
+
+from __future__ import annotations
+
+import json
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from blender_addon import bone_maps as bm
+from blender_addon import keyedit as ke
+from blender_addon import retarget as rt
+from blender_addon import retarget_wiring as rw
+from mld_core.motion.skeleton import JOINT_NAMES
+
+
+@pytest.fixture
+def rigify_metarig(fixtures):
+    return rt.RigRest.load(fixtures / "rigs" / "rigify_metarig.json")
+
+
+def test_options_map_onto_bake_options():
+    opts = rw.RetargetSettings(reduce=True, tolerance_deg=1.5, rotation_mode="ZXY", foot_lock=True, nla=True)
+    bake = opts.bake_options(fps=24, frame_start=7)
+    assert isinstance(bake, ke.BakeOptions)
+    assert (bake.fps, bake.frame_start, bake.rotation_mode, bake.reduce, bake.rot_tolerance_deg, bake.foot_lock) == (
+        24.0, 7.0, "ZXY", True, 1.5, True)
+    assert bake.interpolation == "BEZIER" and bake.loc_tolerance == ke.BakeOptions().loc_tolerance
+    assert opts.rotation_modes({"a": "XYZ"}, ["a"]) is None  # one mode for every bone
+    assert opts.to_dict() == {"reduce": True, "tolerance_deg": 1.5, "rotation_mode": "ZXY", "foot_lock": True, "nla": True}
+    default = rw.RetargetSettings().bake_options(30, 1)
+    assert default.reduce is False and default.rotation_mode == "QUATERNION" and default.foot_lock is False
+
+
+def test_keep_rigs_rotation_modes():
+    keep = rw.RetargetSettings(rotation_mode="KEEP")
+    assert keep.bake_options(20, 1).rotation_mode == "QUATERNION"
+    current = {"Hips": "ZXY", "Spine": "QUATERNION", "Arm": "AXIS_ANGLE", "Other": "XYZ"}
+    assert keep.rotation_modes(current, ["Hips", "Spine", "Arm", "Missing"]) == {
+        "Hips": "ZXY", "Spine": "QUATERNION", "Arm": "QUATERNION", "Missing": "QUATERNION"}
+
+
+def test_settings_from_the_panel_and_bad_values():
+    panel = SimpleNamespace(reduce_keys=True, reduce_tolerance=0.25, rotation_mode="XYZ", foot_lock=False, push_nla=True)
+    assert rw.RetargetSettings.from_settings(panel) == rw.RetargetSettings(True, 0.25, "XYZ", False, True)
+    assert rw.RetargetSettings.from_settings(SimpleNamespace()) == rw.RetargetSettings()
+    with pytest.raises(ValueError, match="rotation mode must be one of"):
+        rw.RetargetSettings(rotation_mode="EULER")
+    with pytest.raises(ValueError, match="tolerance"):
+        rw.RetargetSettings(tolerance_deg=0)
+    assert [c[0] for c in rw.ROTATION_CHOICES] == ["QUATERNION", *ke.EULER_ORDERS, "KEEP"]
+
+
+@pytest.mark.parametrize(
+    "canonical, opts, modes, expected",
+    [
+        (True, rw.RetargetSettings(), None, False),  # the canonical rig's exact path is the default
+        (True, rw.RetargetSettings(nla=True), None, False),
+        (True, rw.RetargetSettings(reduce=True), None, True),
+        (True, rw.RetargetSettings(rotation_mode="XYZ"), None, True),
+        (True, rw.RetargetSettings(foot_lock=True), None, True),
+        (True, rw.RetargetSettings(rotation_mode="KEEP"), {"pelvis": "QUATERNION"}, False),
+        (True, rw.RetargetSettings(rotation_mode="KEEP"), {"pelvis": "YXZ"}, True),
+        (False, rw.RetargetSettings(), None, True),  # every other rig goes through its bone map
+    ],
+)
+def test_which_rigs_go_through_keyedit(canonical, opts, modes, expected):
+    assert rw.uses_keyedit(canonical, opts, modes) is expected
+
+
+def test_map_rows_round_trip_keeps_extras(fixtures, rigify_metarig):
+    det = bm.detect_bone_map(rigify_metarig.names, list(rigify_metarig.parents))
+    rows = rw.map_to_rows(det.bone_map)
+    assert [r.joint for r in rows] == list(JOINT_NAMES)
+    assert {r.joint for r in rows if r.required} == set(bm.REQUIRED_JOINTS)
+    assert all(r.bone for r in rows)
+    extras = rw.map_extras(det.bone_map)
+    back = rw.rows_to_map(rows, extras)
+    assert back.joints == det.bone_map.joints and back.source == "rigify_metarig"
+    # Rigify's generated rig: its pose properties (IK/FK switches) and parent overrides survive the panel
+    rigify = rt.RigRest.load(fixtures / "rigs" / "rigify.json")
+    gen = bm.detect_bone_map(rigify.names, list(rigify.parents)).bone_map
+    assert gen.pose_properties and gen.parent_overrides
+    back = rw.rows_to_map(rw.map_to_rows(gen), rw.map_extras(gen))
+    assert back.pose_properties == gen.pose_properties and back.parent_overrides == gen.parent_overrides
+    assert json.loads(rw.map_extras(gen))["format"] == rw.MAP_FORMAT
+
+
+def test_rows_from_pairs_drop_empty_bones_and_stale_overrides():
+    extras = json.dumps({"source": "user", "parent_overrides": {"Arm": "Clavicle", "Gone": "X"}, "pose_properties": {}})
+    m = rw.rows_to_map([("pelvis", "Hips"), ("left_shoulder", "Arm"), ("left_knee", "")], extras)
+    assert m.joints == {"pelvis": "Hips", "left_shoulder": "Arm"} and m.parent_overrides == {"Arm": "Clavicle"}
+    assert rw.rows_to_map([("pelvis", "Hips")], "{broken").source == "user"  # bad extras: a plain map
+    assert rw.map_to_rows(None)[0] == rw.MapRow("pelvis", "", True)
+    with pytest.raises(bm.BoneMapError, match="unknown joint"):
+        rw.rows_to_map([("tail", "Tail")])
+
+
+def test_missing_required_bones_are_named(rigify_metarig):
+    det = bm.detect_bone_map(rigify_metarig.names, list(rigify_metarig.parents))
+    assert rw.map_problem(det.bone_map, rigify_metarig.names, "metarig") == ""
+    joints = dict(det.bone_map.joints)
+    del joints["left_knee"], joints["head"]
+    joints["right_wrist"] = "no_such_bone"
+    broken = bm.BoneMap(joints)
+    problem = rw.map_problem(broken, rigify_metarig.names, "metarig")
+    assert problem.startswith("'metarig': ") and "left_knee" in problem and "head" in problem
+    assert "right_wrist -> 'no_such_bone'" in problem and "Retarget panel" in problem
+    assert "Nothing was keyed" not in problem  # a poll message: nothing was attempted
+    with pytest.raises(bm.BoneMapError) as err:
+        broken.validate(rigify_metarig.names)
+    message = rw.missing_message(err.value, "metarig")
+    assert "left_knee" in message and "head" in message and message.endswith("Nothing was keyed.")
+    # keyedit refuses the same map before computing anything
+    with pytest.raises(bm.BoneMapError):
+        ke.take_to_keys(np.zeros((3, 22, 3)), rigify_metarig, broken, bake_options=rw.RetargetSettings().bake_options(20, 1))
+
+
+def test_detection_is_cached_per_rig(rigify_metarig):
+    cache = rw.DetectionCache(size=2)
+    names, parents = rigify_metarig.names, list(rigify_metarig.parents)
+    first = cache.get(names, parents)
+    assert cache.get(list(names), list(parents)) is first and cache.runs == 1
+    renamed = [n + "_x" if n == "thigh.L" else n for n in names]
+    assert cache.get(renamed, parents) is not first and cache.runs == 2
+    cache.get(["a"], [-1])
+    cache.get(names, parents)  # evicted (size 2): computed again
+    assert cache.runs == 4
+
+
+def test_canonical_rig_through_keyedit_uses_the_canonical_preset():
+    rig = rt.canonical_rig()
+    m = rw.canonical_map(rig.names)
+    assert m.source == "canonical" and m.joints == {j: j for j in JOINT_NAMES}
+
+
+def _walk(frames=40):
+    """A canonical skeleton stepping in place: feet alternate between resting and lifted."""
+    from mld_core.motion import skeleton as sk
+
+    offsets = np.asarray(sk.REFERENCE_OFFSETS, dtype=np.float64)
+    rest = np.zeros((22, 3))
+    for j, p in enumerate(sk.PARENTS):
+        rest[j] = offsets[j] + (rest[p] if p >= 0 else 0)
+    rest[:, 1] -= rest[:, 1].min()
+    joints = np.repeat(rest[None], frames, 0)
+    t = np.arange(frames)
+    lift = np.clip(np.sin(t / frames * 4 * math.pi), 0, None) * 0.5  # left foot up half the time
+    for j in (sk.JOINT_NAMES.index("left_ankle"), sk.JOINT_NAMES.index("left_foot")):
+        joints[:, j, 1] += lift
+        joints[:, j, 2] += lift * 0.5
+    return joints
+
+
+def test_take_contacts_given_or_recomputed():
+    joints = _walk()
+    given = np.tile([1.0, 0.0, 1.0, 1.0], (39, 1))
+    c = rw.take_contacts(SimpleNamespace(joints=joints, fps=20, contacts=given))
+    assert c.shape == (40, 4) and np.array_equal(c[-1], given[-1])  # padded to the take's frames
+    rec = rw.take_contacts(SimpleNamespace(joints=joints, fps=20))
+    assert rec.shape == (40, 4)
+    right = rec[:, 2] > 0.5
+    left = rec[:, 0] > 0.5
+    assert right.all() and 0 < left.sum() < 40  # the standing foot is in contact, the lifted one only at times
+    assert rw.take_contacts(SimpleNamespace(joints=joints[:1], fps=20)) is None
+
+
+def test_foot_lock_options_reach_keyedit(rigify_metarig):
+    joints = _walk()
+    det = bm.detect_bone_map(rigify_metarig.names, list(rigify_metarig.parents))
+    take = SimpleNamespace(joints=joints, fps=20)
+    opts = rw.RetargetSettings(reduce=True, foot_lock=True)
+    baked, result = ke.take_to_keys(joints, rigify_metarig, det.bone_map, bake_options=opts.bake_options(24, 1),
+                                    contacts=rw.take_contacts(take), fps=20)
+    assert baked.fps == 24 and baked.auto_smoothing == "NONE" and baked.handle_type == "AUTO_CLAMPED"
+    assert 0 < baked.stats["reduction_ratio"] < 1
+    assert {c.group for c in baked.curves} == set(det.bone_map.joints.values())  # mapped bones only
+    with pytest.raises(ValueError, match="contacts"):
+        ke.take_to_keys(joints, rigify_metarig, det.bone_map, bake_options=opts.bake_options(24, 1), fps=20)
+
+
+def test_batch_arguments_are_checked_before_any_work(tmp_path):
+    from blender_addon import batch
+
+    parser = batch.build_parser()
+    addon = batch._addon_package()
+
+    def inputs(*extra):
+        return batch.retarget_inputs(parser.parse_args(["--prompt", "x", "--out", "o.blend", *extra]), addon)
+
+    settings, bone_map = inputs("--reduce", "--tolerance", "1", "--rotation-mode", "yxz", "--foot-lock", "--nla")
+    assert settings == rw.RetargetSettings(True, 1.0, "YXZ", True, True) and bone_map is None
+    assert inputs()[0] == rw.RetargetSettings()
+    good = tmp_path / "map.json"
+    bm.BoneMap({"pelvis": "Hips", "head": "Head"}).save(good)
+    assert inputs("--bone-map", str(good))[1].joints == {"pelvis": "Hips", "head": "Head"}
+    (tmp_path / "bad.json").write_text("[1, 2")
+    (tmp_path / "rig.txt").write_text("")
+    cases = [
+        (["--bone-map", str(tmp_path / "bad.json")], "not valid JSON"),
+        (["--bone-map", str(tmp_path / "none.json")], "bone map not found"),
+        (["--rig", str(tmp_path / "rig.txt")], "must name a .blend"),
+        (["--rig", str(tmp_path / "none.blend")], "rig file not found"),
+        (["--bvh-rig", str(tmp_path / "none.bvh")], "BVH rig not found"),
+        (["--rig-object", "A"], "--rig-object needs --rig"),
+        (["--tolerance", "-1"], "tolerance"),
+        (["--armature", "A", "--bvh-rig", str(good)], "--armature"),
+    ]
+    for extra, words in cases:
+        with pytest.raises(batch.BatchError, match=words):
+            inputs(*extra)
