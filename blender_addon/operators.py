@@ -14,7 +14,7 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 
 from . import env, runtime
-from .apply import check_target
+from .apply import check_target, settings_of
 from .validation import RequestError, validate_request
 
 
@@ -46,7 +46,9 @@ def request_from_settings(settings, prefs):
 def do_generate(obj, scene, request, *, exact=True, set_frame_range=True, wait=False):
     """Generate for ``obj``: wait=True runs to the end and returns (level, message); otherwise submits the
     job and returns ("INFO", message) at once."""
-    target = runtime.Target(obj.name, getattr(obj, "session_uid", None), scene.name, exact, set_frame_range)
+    # the keying options are read now, so changing the panel while the job runs does not change this take
+    target = runtime.Target(obj.name, getattr(obj, "session_uid", None), scene.name, exact, set_frame_range,
+                            options=settings_of(scene))
     if wait:
         job = runtime.runner().run_now(request)
         return runtime.finish_job(job, target)

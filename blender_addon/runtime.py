@@ -31,6 +31,7 @@ class Target:
     scene_name: str
     exact: bool
     set_frame_range: bool
+    options: object = None  # apply.RetargetSettings as they were when Generate was pressed (None: read them at the end)
 
 
 _targets: dict[int, Target] = {}
@@ -127,7 +128,8 @@ def finish_job(job, target: Target | None) -> tuple[str, str]:
         record_outcome(scene, error=error)
         return "ERROR", error
     try:
-        report = apply_result(obj, job.result, scene, exact=target.exact, set_frame_range=target.set_frame_range)
+        report = apply_result(obj, job.result, scene, exact=target.exact, set_frame_range=target.set_frame_range,
+                              options=target.options)
     except Exception as exc:  # noqa: BLE001 - reach the user as a message, never a traceback
         import traceback
 
