@@ -16,8 +16,6 @@ import numpy as np
 
 from .posing import BoneChannels
 
-_INTERPOLATION = {"CONSTANT": 0, "LINEAR": 1, "BEZIER": 2}
-
 
 def slotted_actions() -> bool:
     """True where Actions have slots and layers (Blender 4.4+)."""
@@ -71,8 +69,15 @@ def fcurves_of(action, obj=None) -> list:
     return curves
 
 
-def write_keys(fc, frames: np.ndarray, values: np.ndarray, interpolation: str = "LINEAR") -> None:
-    """Replace nothing, add ``len(frames)`` keys to an empty F-curve in bulk."""
+def write_keys(fc, frames: np.ndarray, values: np.ndarray, interpolation: str = "LINEAR", *,
+               handle_type: str | None = None, auto_smoothing: str | None = None) -> None:
+    """Add ``len(frames)`` keys to an empty F-curve in bulk (replaces nothing).
+
+    ``handle_type`` (e.g. 'AUTO_CLAMPED') sets both handles; ``auto_smoothing`` is set first, because Blender
+    computes the handles from it when the curve updates (keyedit's key reduction assumes 'NONE').
+    """
+    if auto_smoothing is not None and hasattr(fc, "auto_smoothing"):
+        fc.auto_smoothing = auto_smoothing
     n = len(frames)
     co = np.empty((n, 2), np.float32)  # (n, [frame, value])
     co[:, 0] = frames
@@ -80,8 +85,18 @@ def write_keys(fc, frames: np.ndarray, values: np.ndarray, interpolation: str = 
     points = fc.keyframe_points
     points.add(n)
     points.foreach_set("co", co.ravel())
-    points.foreach_set("interpolation", np.full(n, _INTERPOLATION[interpolation], np.int32))
+    points.foreach_set("interpolation", np.full(n, _enum_index(bpy.types.Keyframe, "interpolation", interpolation), np.int32))
+    if handle_type is not None:
+        handle = np.full(n, _enum_index(bpy.types.Keyframe, "handle_left_type", handle_type), np.int32)
+        points.foreach_set("handle_left_type", handle)
+        points.foreach_set("handle_right_type", handle)
     fc.update()
+
+
+def _enum_index(struct, prop: str, value: str) -> int:
+    """The integer foreach_set wants for an enum value (read from RNA, so it follows Blender's numbering)."""
+    items = list(struct.bl_rna.properties[prop].enum_items.keys())
+    return items.index(value)
 
 
 def keep_previous_action(obj) -> object | None:
@@ -132,35 +147,6 @@ def channels_to_action(
         keep_previous_action(obj)
         writer.assign()
     return action
-
-
-_HANDLE_TYPES = ("FREE", "ALIGNED", "VECTOR", "AUTO", "AUTO_CLAMPED")
-
-
-def _enum_index(struct, prop: str, value: str) -> int:
-    """The integer foreach_set wants for an enum value (read from RNA, so it follows Blender's numbering)."""
-    items = list(struct.bl_rna.properties[prop].enum_items.keys())
-    return items.index(value)
-
-
-def write_baked_curve(fc, frames: np.ndarray, values: np.ndarray, *, interpolation: str, handle_type: str,
-                      auto_smoothing: str = "NONE") -> None:
-    """Add ``len(frames)`` keys to an empty F-curve in bulk with the interpolation and handle types keyedit's
-    key reduction assumed (``auto_smoothing`` first: handles are computed from it when the curve updates)."""
-    if hasattr(fc, "auto_smoothing"):
-        fc.auto_smoothing = auto_smoothing
-    n = len(frames)
-    co = np.empty((n, 2), np.float32)  # (n, [frame, value])
-    co[:, 0] = frames
-    co[:, 1] = values
-    points = fc.keyframe_points
-    points.add(n)
-    points.foreach_set("co", co.ravel())
-    points.foreach_set("interpolation", np.full(n, _enum_index(bpy.types.Keyframe, "interpolation", interpolation), np.int32))
-    handle = np.full(n, _enum_index(bpy.types.Keyframe, "handle_left_type", handle_type), np.int32)
-    points.foreach_set("handle_left_type", handle)
-    points.foreach_set("handle_right_type", handle)
-    fc.update()
 
 
 def set_pose_properties(obj, pose_properties: dict) -> list[str]:
@@ -215,8 +201,8 @@ def baked_to_action(
     writer = ChannelWriter(action, obj)
     for curve in baked.curves:
         fc = writer.fcurve(curve.data_path, curve.index, curve.group)
-        write_baked_curve(fc, curve.frames, curve.values, interpolation=baked.interpolation,
-                          handle_type=baked.handle_type, auto_smoothing=baked.auto_smoothing)
+        write_keys(fc, curve.frames, curve.values, baked.interpolation, handle_type=baked.handle_type,
+                   auto_smoothing=baked.auto_smoothing)
     for bone, mode in baked.rotation_modes.items():
         if bone in pose_bones:
             pose_bones[bone].rotation_mode = mode

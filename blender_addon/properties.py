@@ -82,7 +82,7 @@ class MLD_SceneSettings(bpy.types.PropertyGroup):
     rotation_mode: EnumProperty(
         name="Rotation",
         description="Rotation channels to key",
-        items=[(i, label, desc) for i, label, desc in ROTATION_CHOICES],
+        items=list(ROTATION_CHOICES),
         default="QUATERNION",
     )
     foot_lock: BoolProperty(

@@ -212,31 +212,8 @@ for _ in range(3):
 out["random_seeds"] = len(seeds)
 
 # Draw the panel and the preferences with a recording layout: every property and operator must exist.
-class Layout:
-    calls = []
-    def __init__(self):
-        self.alert = False
-        self.enabled = True
-    def _sub(self, *a, **k):
-        return Layout()
-    row = column = box = split = _sub
-    def prop(self, data, name, **k):
-        assert name in data.bl_rna.properties, name
-        Layout.calls.append(("prop", name))
-    def operator(self, idname, **k):
-        group, op = idname.split(".")
-        assert hasattr(getattr(bpy.ops, group), op), idname
-        Layout.calls.append(("operator", idname))
-    def label(self, text="", **k):
-        Layout.calls.append(("label", text))
-    def progress(self, factor=0.0, type="BAR", text=""):
-        Layout.calls.append(("progress", text))
-    def separator(self, **k):
-        pass
-
-class Host:
-    def __init__(self):
-        self.layout = Layout()
+sys.path.insert(0, os.path.join({repo!r}, "tests"))
+from recording_layout import Host, Layout
 
 from blender_addon import panels, runtime, preferences
 import time

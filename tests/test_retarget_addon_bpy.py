@@ -136,33 +136,10 @@ out["canonical_euler"] = [a["mld_retargeted"], sorted({{fc.data_path.rsplit(".",
                           sorted({{pb.rotation_mode for pb in can.pose.bones}})]
 
 # the Retarget panel draws (with a recording layout)
-class Layout:
-    calls = []
-    def __init__(self):
-        self.alert = False
-        self.enabled = True
-    def _sub(self, *a, **k):
-        return Layout()
-    row = column = box = split = _sub
-    def prop(self, data, name, **k):
-        assert name in data.bl_rna.properties, name
-        Layout.calls.append(("prop", name))
-    def prop_search(self, data, name, sdata, sname, **k):
-        Layout.calls.append(("prop_search", name, sname))
-    def operator(self, idname, **k):
-        group, op = idname.split(".")
-        assert hasattr(getattr(bpy.ops, group), op), idname
-        Layout.calls.append(("operator", idname))
-    def label(self, text="", **k):
-        Layout.calls.append(("label", text))
-    def template_list(self, listtype, list_id, data, prop, adata, aprop, **k):
-        Layout.calls.append(("template_list", listtype, prop))
-        for item in getattr(data, prop):
-            getattr(bpy.types, listtype).draw_item(None, ctx, Layout(), data, item, 0, adata, aprop)
-    def separator(self, **k):
-        pass
+sys.path.insert(0, {repo!r} + "/tests")
+from recording_layout import Host, Layout
 s.target = obj
-retarget_ui.MLD_PT_retarget.draw(type("H", (), {{"layout": Layout()}})(), ctx)
+retarget_ui.MLD_PT_retarget.draw(Host(), ctx)
 out["drawn"] = list(Layout.calls)
 emit(out)
 """
