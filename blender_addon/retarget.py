@@ -459,8 +459,9 @@ class RetargetOptions:
         source's bend plane, the spine aims each bone at the scaled source's next joint. "directions" turns every
         segment exactly along the source's (effectors then drift by the difference in proportions).
     floor: for rigs whose rest pose stands, shift the take vertically so the source's standing ankle height (its
-        5th percentile over the take) becomes the rig's rest ankle height, and pitch the feet so a foot planted
-        flat in the source is as flat as the rig's rest foot.
+        5th percentile over the take) becomes the rig's rest ankle height, pitch the feet so a foot planted flat
+        in the source is as flat as the rig's rest foot, and keep every foot joint (ankles, toes) at or above
+        its rest height (the rig's feet never go through the floor it stands on at rest).
     """
 
     yaw_deg: float = 0.0
@@ -594,6 +595,11 @@ def place_source(
             lateral[:, 2] = 0.0
             turn = axis_angle_matrix(normalize(lateral), np.full(len(foot), rig_pitch - src_pitch))
             world[:, JOINT_INDEX[toe]] = world[:, JOINT_INDEX[ankle]] + np.einsum("tij,tj->ti", turn, foot)
+        # The floor: no foot joint lower than it stands at rest (generated feet dip a few centimetres below
+        # their own standing height); the legs and feet are solved to reach the lifted joints.
+        for joint in standing:
+            z_rest = heads[rig.index(bone_map[joint]), 2]
+            world[:, JOINT_INDEX[joint], 2] = np.maximum(world[:, JOINT_INDEX[joint], 2], z_rest)
     return world, scale
 
 
@@ -739,6 +745,8 @@ def retarget(
 
     rest = rig.matrices
     rest_inv = np.linalg.inv(rest)
+    up = normalize(np.linalg.inv(rig.object_matrix[:3, :3]) @ np.array([0.0, 0.0, 1.0]))  # world Z, armature space
+    units = scale / rig.world_scale()  # armature units per source metre
     local_rot = {}  # bone index -> (T, 3, 3)
     local_loc = {}  # bone index -> (T, 3)
     pose_cache: dict[int, np.ndarray] = {}
@@ -804,6 +812,11 @@ def retarget(
                 d = normalize(desired[end] - head)  # (T, 3)
             else:
                 d = normalize(sp[end] - sp[joint])  # (T, 3)
+            if options.match == "effectors" and (joint, end) in _FEET:
+                # A fixed-length rig foot aimed along the source's ankle -> toe line digs its toe into the floor
+                # whenever the source's foot is shorter (generated joints do not keep bone lengths): while the
+                # source's toe is down, pitch the foot so the rig's toe stands exactly as high as the source's.
+                d = _toe_on_floor(d, head, sp[end], float(np.linalg.norm(seg_rest)), up, units)
             ref = twist_reference(joint, sp_mapped, rest=False) if options.twist else None
             fallback = None
             if ref is not None:
@@ -870,6 +883,31 @@ def retarget(
         source_world=world,
         rig=rig,
     )
+
+
+_FEET = {("left_ankle", "left_foot"), ("right_ankle", "right_foot")}
+TOE_DOWN_M = (0.03, 0.08)  # source toe height above its lowest (5th percentile): fully planted .. fully lifted
+
+
+def _toe_on_floor(
+    d: np.ndarray, head: np.ndarray, toe: np.ndarray, length: float, up: np.ndarray, units: float
+) -> np.ndarray:
+    """Foot directions (T, 3) whose end, ``length`` from ``head``, is as high along ``up`` as the source ``toe``
+    on frames where that toe is down (blended out as it lifts), keeping the direction's heading.
+
+    d: (T, 3) unit directions aimed along the source foot; head: (T, 3) the rig's ankle; toe: (T, 3) the placed
+    source toe; units: armature units per source metre (for the planted / lifted thresholds).
+    """
+    h_toe = toe @ up  # (T,)
+    lo, hi = (m * units for m in TOE_DOWN_M)
+    above = h_toe - np.percentile(h_toe, 5)
+    w = 1.0 - _smoothstep((above - lo) / (hi - lo))  # 1 planted .. 0 lifted
+    want = np.clip((h_toe - head @ up) / max(length, _EPS), -1.0, 1.0)  # vertical component reaching the toe
+    vz = (1.0 - w) * (d @ up) + w * want  # (T,)
+    flat = d - (d @ up)[:, None] * up  # (T, 3) the heading
+    ok = np.linalg.norm(flat, axis=-1) > 1e-6
+    out = vz[:, None] * up + np.sqrt(np.clip(1.0 - vz**2, 0.0, 1.0))[:, None] * normalize(flat)
+    return np.where(ok[:, None], out, d)
 
 
 LIMBS = {  # chain root -> (middle joint, effector)

@@ -133,7 +133,10 @@ class RawMotionBaseline:
         cfg = replace(den_cfg, latent_tokens=self.frames, latent_dim=self.feature_dim,
                       max_frames=max(den_cfg.max_frames, self.frames))
         torch.manual_seed(seed)
-        self.model = LatentDenoiser(cfg).eval()
+        # The same inference path as the pipeline's denoiser: its precision, prepacked weights on a CPU.
+        self.dtype = next(pipe.denoiser.parameters()).dtype
+        self.model = LatentDenoiser(cfg).eval().to(self.dtype)
+        self.model.transformer.pack_for_cpu_inference()
         self.config = cfg
 
     @property
@@ -172,7 +175,7 @@ class RawMotionBaseline:
         gen = torch.Generator().manual_seed(seed)
         x = torch.randn(B, T, self.feature_dim, generator=gen)  # (B, T, 263) normalised frames
         use_guidance = s != 1.0 and self.cond != "none"
-        both = torch.cat([null, cond]) if use_guidance else cond
+        both = (torch.cat([null, cond]) if use_guidance else cond).to(self.dtype)
         lengths = torch.full((B * (2 if use_guidance else 1),), T)
         t0 = time.perf_counter()
         run = 0
@@ -180,7 +183,7 @@ class RawMotionBaseline:
             if max_steps is not None and run >= max_steps:
                 break
             x_in = torch.cat([x, x]) if use_guidance else x
-            eps = self.model(x_in, torch.full((x_in.shape[0],), int(t)), both, lengths)
+            eps = self.model(x_in.to(self.dtype), torch.full((x_in.shape[0],), int(t)), both, lengths).float()
             if use_guidance:
                 e_null, e_cond = eps.chunk(2)
                 eps = e_null + s * (e_cond - e_null)
@@ -239,12 +242,15 @@ class _TrainMode:
 
     def __enter__(self):
         self.saved = [(sub, sub.training) for m in self.modules for sub in m.modules()]
+        self.packed = [(sub, sub._packed) for sub, _ in self.saved if isinstance(getattr(sub, "_packed", None), dict)]
         for m in self.modules:
             m.train()
 
     def __exit__(self, *exc):
         for sub, mode in self.saved:
             sub.training = mode
+        for sub, packed in self.packed:  # train() drops prepacked inference weights; the weights did not change
+            sub._packed = packed
 
 
 def mld_flops(pipe, prompt: str, frames: int, steps: int, guidance_scale: float | None = None) -> dict:
@@ -299,13 +305,13 @@ def raw_flops(baseline: RawMotionBaseline, prompt: str, steps: int, guidance_sca
 def run_bench(model=None, *, baseline: str | None = None, prompts: int = 32, seconds: float = 4.0,
               steps: int | None = None, guidance_scale: float | None = None, ddpm_prompts: int = 2,
               ddpm_timed_steps: int = 20, raw_ddim_prompts: int = 8, threads: int | None = None,
-              progress: bool = True, log=print) -> dict:
+              progress: bool = True, log=print, precision: str = "fp32") -> dict:
     """Time MLD (and the raw baseline) on the same prompts; returns the JSON-ready result."""
     from mld_core.pipeline import MLDPipeline
 
     if threads:
         torch.set_num_threads(threads)
-    pipe = model if hasattr(model, "denoiser") else MLDPipeline.from_pretrained(model)
+    pipe = model if hasattr(model, "denoiser") else MLDPipeline.from_pretrained(model, precision=precision)
     if pipe.denoiser is None:
         raise ValueError("this model folder has only a VAE; the benchmark needs a denoiser")
     frames = pipe.frames_for(seconds)
@@ -316,7 +322,8 @@ def run_bench(model=None, *, baseline: str | None = None, prompts: int = 32, sec
     result = {"model_id": pipe.model_id, "seconds": seconds, "frames": frames, "prompts": prompts,
               "cpus": os.cpu_count(),
               "threads": torch.get_num_threads(), "torch": torch.__version__, "machine": platform.machine(),
-              "processor": platform.processor() or platform.machine(), "guidance_scale": guidance, "methods": []}
+              "processor": platform.processor() or platform.machine(), "guidance_scale": guidance,
+              "precision": getattr(pipe, "precision", "fp32"), "methods": []}
 
     mld_kw = {"num_inference_steps": steps, "guidance_scale": guidance_scale}
     log(f"timing MLD ({pipe.model_id}) on {prompts} prompts, {seconds:g} s ({frames} frames), "
@@ -432,7 +439,7 @@ def format_bench(result: dict) -> str:
     fmt = lambda r: "| " + " | ".join(str(c).ljust(w) for c, w in zip(r, widths)) + " |"  # noqa: E731
     lines = [f"AITS = text encoding + diffusion + decoding per prompt; {result['frames']} frames "
              f"({result['seconds']:g} s), guidance {result['guidance_scale']:g}, {result['prompts']} prompts, "
-             f"{result['threads']} CPU thread(s), torch {result['torch']}",
+             f"{result['threads']} CPU thread(s), {result.get('precision', 'fp32')} denoiser, torch {result['torch']}",
              fmt(head), "|" + "|".join("-" * (w + 2) for w in widths) + "|"] + [fmt(r) for r in rows]
     if any(not m["trained"] for m in result["methods"]):
         lines.append("The raw-motion baseline has UNTRAINED (random) weights: its rows measure speed and FLOPs only. "
@@ -458,6 +465,7 @@ def register(groups) -> None:
     p.add_argument("--ddpm-timed-steps", type=int, default=20,
                    help="raw DDPM at batch 32: steps timed before extrapolating to 1000 (default 20)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    p.add_argument("--precision", choices=["fp32", "bf16"], default="fp32", help="denoiser precision: fp32 (default) or bf16 (faster on CPUs with AVX512-BF16/AMX; samples close to fp32's)")
     p.add_argument("--json", default=None, help="also write the numbers here")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run_cli)
@@ -473,7 +481,7 @@ def _run_cli(args) -> int:
         result = run_bench(args.model, baseline=args.baseline, prompts=args.prompts, seconds=args.seconds,
                            steps=args.steps, guidance_scale=args.guidance, ddpm_prompts=args.ddpm_prompts,
                            ddpm_timed_steps=args.ddpm_timed_steps, threads=args.threads,
-                           progress=not args.no_progress)
+                           progress=not args.no_progress, precision=args.precision)
     except (CheckpointError, FileNotFoundError, ValueError) as exc:
         raise UsageError(str(exc)) from None
     print(format_bench(result))

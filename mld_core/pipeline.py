@@ -24,6 +24,9 @@ from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import DDIMScheduler
 
 
+PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16}
+
+
 class Cancelled(Exception):
     """Raised when the progress callback returns False."""
 
@@ -51,11 +54,18 @@ def _as_list(value, n: int, name: str) -> list:
 
 class MLDPipeline:
     def __init__(self, config: ModelConfig, vae: MotionVAE, denoiser: LatentDenoiser | None, text_encoder=None,
-                 device: str | torch.device = "cpu"):
+                 device: str | torch.device = "cpu", precision: str = "fp32"):
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
         self.config = config
         self.device = torch.device(device)
+        self.precision = precision
         self.vae = vae.eval().to(self.device)
-        self.denoiser = denoiser.eval().to(self.device) if denoiser is not None else None
+        # The denoiser runs 2 x 50 times per prompt: in bf16 its weights are cast once (text encoder, VAE and the
+        # DDIM update stay in float32).
+        self.denoiser = denoiser.eval().to(self.device, PRECISIONS[precision]) if denoiser is not None else None
+        if self.denoiser is not None:
+            self.denoiser.transformer.pack_for_cpu_inference()  # no-op off CPU
         self.text_encoder = text_encoder
         self.scheduler = DDIMScheduler(config.scheduler)
         mean, std = config.mean_std
@@ -63,8 +73,11 @@ class MLDPipeline:
 
     # -- loading ----------------------------------------------------------------------------------------------
     @classmethod
-    def from_pretrained(cls, path: str | Path | None = None, device: str = "cpu", text_encoder=None) -> "MLDPipeline":
-        """Load a model folder (None: the bundled default). ``text_encoder`` overrides the one named in config.json."""
+    def from_pretrained(cls, path: str | Path | None = None, device: str = "cpu", text_encoder=None,
+                        precision: str = "fp32") -> "MLDPipeline":
+        """Load a model folder (None: the bundled default). ``text_encoder`` overrides the one named in config.json.
+        ``precision="bf16"`` runs the denoiser in bfloat16: faster on CPUs with native bfloat16 (AVX512-BF16, AMX),
+        samples close to but not bit-equal to float32's."""
         model_dir = Path(path) if path is not None else DEFAULT_MODEL_DIR
         config = load_config(model_dir)
         vae = MotionVAE(config.vae)
@@ -79,7 +92,7 @@ class MLDPipeline:
                 text_encoder = load_text_encoder(config.text_encoder)
         if len(config.mean) != config.vae.feature_dim or len(config.std) != config.vae.feature_dim:
             raise CheckpointError(f"{model_dir / 'config.json'}: mean/std must have {config.vae.feature_dim} values")
-        return cls(config, vae, denoiser, text_encoder, device)
+        return cls(config, vae, denoiser, text_encoder, device, precision)
 
     # -- sizes --------------------------------------------------------------------------------------------------
     @property
@@ -197,13 +210,14 @@ class MLDPipeline:
         t0 = time.perf_counter()
         self.scheduler.set_timesteps(steps)
         use_guidance = s != 1.0 and cond_kind != "none"
-        both_cond = torch.cat([null, cond]) if use_guidance else cond
+        dtype = PRECISIONS[self.precision]
+        both_cond = (torch.cat([null, cond]) if use_guidance else cond).to(dtype)
         both_len = torch.cat([lengths, lengths]) if use_guidance else lengths
         total = len(self.scheduler.timesteps)
         for k, t in enumerate(self.scheduler.timesteps):
             z_in = torch.cat([z, z]) if use_guidance else z
             t_batch = torch.full((z_in.shape[0],), int(t), device=self.device)
-            eps = self.denoiser(z_in, t_batch, both_cond, both_len)
+            eps = self.denoiser(z_in.to(dtype), t_batch, both_cond, both_len).float()
             if use_guidance:
                 eps_null, eps_cond = eps.chunk(2)
                 eps = eps_null + s * (eps_cond - eps_null)

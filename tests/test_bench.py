@@ -64,6 +64,9 @@ def test_flops_scale_with_steps_and_sequence(pipe):
     assert ddpm["per_step"] == ddim["per_step"] > 10 * mld["per_step"]  # 40 frame tokens vs 1 latent token
     assert ddpm["total"] - ddpm["condition"] == 20 * (ddim["total"] - ddim["condition"])
     assert ddim["condition"] == mld["condition"]  # same text encoder and condition path
+    # Counting FLOPs runs the modules in train mode: the prepacked inference weights come back afterwards.
+    if torch.backends.mkldnn.is_available():
+        assert pipe.denoiser.transformer._packed and raw.model.transformer._packed
 
 
 def test_run_bench_with_raw_baseline_prints_ratios_and_says_untrained(pipe, tmp_path):

@@ -284,3 +284,50 @@ def test_config_json_round_trips(tmp_path):
     assert data["format"] == "mld-core-model"
     assert data["denoiser"]["cond"] == "action" and data["vae"]["encoder"]["layers"] == 1
     assert len(data["mean"]) == 263
+
+
+# -- CPU inference paths --------------------------------------------------------------------------------------
+def _skip_stack(seed=0):
+    torch.manual_seed(seed)
+    return SkipTransformer(TransformerConfig(dim=32, heads=2, ff_dim=64, layers=3, dropout=0.0)).eval()
+
+
+def test_inference_layer_and_packed_weights_equal_the_torch_layers():
+    """The written-out encoder layer (no grad, eval, no padding mask), with and without oneDNN-prepacked weights,
+    computes what nn.TransformerEncoderLayer computes; training drops the packed snapshot."""
+    net = _skip_stack()
+    x = torch.randn(2, 7, 32)
+    reference = net(x)  # grad enabled: PyTorch's own layers
+    with torch.no_grad():
+        plain = net(x)
+        packed_ok = net.pack_for_cpu_inference()
+        packed = net(x)
+    torch.testing.assert_close(plain, reference, atol=1e-5, rtol=0)
+    torch.testing.assert_close(packed, reference, atol=1e-4, rtol=0)
+    if torch.backends.mkldnn.is_available():
+        assert packed_ok and len(net._packed) == 3
+    # Weights change during training: the snapshot must not survive train().
+    net.train()
+    assert net._packed == {}
+    with torch.no_grad():
+        for p in net.parameters():
+            p.mul_(1.5)
+    net.eval()
+    changed = net(x)
+    with torch.no_grad():
+        assert torch.allclose(net(x), changed, atol=1e-5) and not torch.allclose(changed, reference, atol=1e-3)
+
+
+def test_bf16_pipeline_is_close_to_float32(tmp_path):
+    full = tiny_pipeline(tmp_path / "a", seed=0)
+    half = MLDPipeline.from_pretrained(tmp_path / "a", precision="bf16")
+    assert {p.dtype for p in half.denoiser.parameters()} == {torch.bfloat16}
+    assert {p.dtype for p in half.vae.parameters()} == {torch.float32}
+    a = full(["a person walks", "a person waves"], seconds=2.0, seed=1, num_inference_steps=2)
+    b = half(["a person walks", "a person waves"], seconds=2.0, seed=1, num_inference_steps=2)
+    assert b.features.dtype == np.float32 and np.isfinite(b.features).all()
+    scale = np.abs(a.features).max()
+    assert np.abs(a.features - b.features).max() < 0.05 * scale  # bfloat16 keeps ~3 significant digits
+    assert not np.array_equal(a.features, b.features)
+    with pytest.raises(ValueError, match="precision"):
+        MLDPipeline.from_pretrained(tmp_path / "a", precision="fp8")

@@ -154,6 +154,76 @@ def test_effectors_follow_the_source_continuously(fixtures, rig_name, takes, gol
             assert step.max() < 45, (name, step.max())  # a walking knee turns up to ~30 degrees a frame
 
 
+@pytest.mark.parametrize("rig_name", ("canonical", "rigify_metarig", "bandai_bvh", "tpose_y_up_cm"))
+def test_planted_toes_stay_on_the_floor_when_the_source_foot_changes_length(fixtures, rig_name, takes, golden):
+    """Generated joints do not keep bone lengths: a source foot shorter than the rig's (and varying) must not push
+    the rig's toes into the floor while they are down, and a lifted foot still points where the source's does."""
+    if rig_name in SYNTHETIC:
+        rig, joints, overrides = SYNTHETIC[rig_name], {n: n for n in rt.JOINT_NAMES}, {}
+    else:
+        rig, bmap = _fixture_rig(fixtures, rig_name)
+        joints, overrides = bmap.joints, bmap.parent_overrides
+    lifted_checked = 0
+    for take in (takes["dataset-2_walk-turn-left_normal_027"].copy(), golden.copy()):
+        T = len(take)
+        shrink = 0.6 + 0.15 * np.sin(np.arange(T) / 5.0)  # (T,) the foot 45-75% of its length, changing
+        for side in ("left", "right"):
+            ankle, toe = J[f"{side}_ankle"], J[f"{side}_foot"]
+            take[:, toe] = take[:, ankle] + shrink[:, None] * (take[:, toe] - take[:, ankle])
+        result = rt.retarget(take, rig, joints, parent_overrides=overrides)
+        fid = rt.fidelity(result)
+        assert fid["sink_cm"] < 0.01, fid
+        assert fid["effector_err_mean"] < 0.05, fid
+        wj, src = result.world_joints(), result.source_world
+        units = result.scale  # world units per source metre
+        for side in ("left", "right"):
+            ankle, toe = f"{side}_ankle", f"{side}_foot"
+            z = src[:, J[toe], 2]
+            planted = z <= np.percentile(z, 5) + rt.TOE_DOWN_M[0] * units
+            lifted = z > np.percentile(z, 5) + rt.TOE_DOWN_M[1] * units
+            # Planted: the rig's toe exactly as high as the source's (neither sinking nor floating).
+            np.testing.assert_allclose(wj[toe][planted, 2], z[planted], atol=1e-6 * units)
+            # Aiming the rig's (longer) foot along the source's foot would have sunk it by more than 1 cm.
+            length = np.linalg.norm(wj[toe] - wj[ankle], axis=-1)
+            aimed = wj[ankle] + length[:, None] * rt.normalize(src[:, J[toe]] - src[:, J[ankle]])
+            assert np.max(z[planted] - aimed[planted, 2]) > 0.01 * units
+            # Lifted: the foot points along the source's foot.
+            cos = np.sum(rt.normalize(wj[toe] - wj[ankle]) * rt.normalize(src[:, J[toe]] - src[:, J[ankle]]), -1)
+            assert np.all(cos[lifted] > 1 - 1e-9), cos[lifted].min()
+            lifted_checked += int(lifted.sum())
+    assert lifted_checked > 5
+
+
+@pytest.mark.parametrize("rig_name", ("canonical", "rigify_metarig", "tpose_y_up_cm"))
+def test_feet_never_go_below_their_rest_height_on_standing_rigs(fixtures, rig_name, takes):
+    """Generated feet dip below their own standing height now and then: on a rig whose rest stands, no ankle or
+    toe goes lower than it stands at rest (the floor), and the rest of the take is untouched."""
+    if rig_name in SYNTHETIC:
+        rig, joints, overrides = SYNTHETIC[rig_name], {n: n for n in rt.JOINT_NAMES}, {}
+    else:
+        rig, bmap = _fixture_rig(fixtures, rig_name)
+        joints, overrides = bmap.joints, bmap.parent_overrides
+    take = takes["dataset-2_walk-turn-left_normal_027"].copy()
+    dip = 0.04 * np.exp(-0.5 * ((np.arange(len(take)) - 20) / 3.0) ** 2)  # (T,) a 4 cm dip around frame 20
+    for name in ("left_ankle", "left_foot", "right_ankle", "right_foot"):
+        take[:, J[name], 1] -= dip
+    standing = rt.standing_heights(rig, joints)
+    assert standing is not None
+    plain = rt.retarget(take, rig, joints, rt.RetargetOptions(floor=False), parent_overrides=overrides)
+    result = rt.retarget(take, rig, joints, parent_overrides=overrides)
+    rest = rt._to_world(result.rig, result.rig.heads)
+    wj = result.world_joints()
+    below = {j: float(np.max(rest[result.rig.index(joints[j]), 2] - wj[j][:, 2])) for j in standing}
+    assert max(below.values()) < 1e-6 * result.scale, below
+    assert rt.fidelity(result)["below_rest_height_cm"] < 1e-4
+    # Without the floor the dip goes through it.
+    wp = plain.world_joints()
+    assert max(float(np.max(rest[plain.rig.index(joints[j]), 2] - wp[j][:, 2])) for j in standing) > 0.02 * plain.scale
+    # Only the feet are lifted: the hands follow the same source either way.
+    for j in ("left_wrist", "right_wrist", "head"):
+        np.testing.assert_allclose(wj[j], wp[j] + (wj["pelvis"] - wp["pelvis"]), atol=1e-6 * result.scale)
+
+
 def test_walk_turn_keeps_its_direction_and_turn(fixtures, takes):
     rig, bmap = _fixture_rig(fixtures, "rigify_metarig")
     take = takes["dataset-2_walk-turn-left_normal_027"]

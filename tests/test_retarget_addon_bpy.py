@@ -39,7 +39,8 @@ obj = ctx.object
 clip_action = obj.animation_data.action
 out["clip_action"] = clip_action.name
 s.target = obj
-s.prompt, s.seconds, s.seed, s.steps = "a person walks forward", 3.0, 1, 10
+# seed 0 at 50 steps: a walk whose generated feet change length (its toes sank 1.2 cm before the planted-toe solve)
+s.prompt, s.seconds, s.seed, s.steps = "a person walks forward", 3.0, 0, 50
 
 # the detected map: Bandai's preset, nothing stored yet
 out["problem_detected"] = operators.generate_problem(ctx)
@@ -171,7 +172,7 @@ def test_bone_map_save_and_load(addon_run):
 def test_generate_keys_mapped_bones_with_reduced_bezier_keys(addon_run):
     r = addon_run
     assert r["generate"] == ["FINISHED"] and r["error"] == ""
-    assert r["action"] == "walks_forward_s1" and r["clip_kept"]
+    assert r["action"] == "walks_forward_s0" and r["clip_kept"]
     assert r["keyed_bones"] == r["mapped_bones"] and len(r["mapped_bones"]) < r["n_bones"]
     assert r["auto_smoothing"] == ["NONE"] and r["handles"] == ["AUTO_CLAMPED"] and r["interp"] == ["BEZIER"]
     props = r["props"]

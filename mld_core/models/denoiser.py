@@ -123,11 +123,13 @@ class LatentDenoiser(nn.Module):
         -> predicted noise (B, n, latent_dim)."""
         cfg = self.config
         d = cfg.transformer.dim
-        time = self.time_mlp(sinusoidal_embedding(timesteps, d))  # (B, d)
+        dtype = self.latent_in.weight.dtype
+        time = self.time_mlp(sinusoidal_embedding(timesteps, d).to(dtype))  # (B, d)
         if cfg.length_conditioning:
             if lengths is None:
                 raise ValueError("this denoiser is conditioned on the target length: pass lengths")
-            time = time + self.length_mlp(sinusoidal_embedding(lengths.float() * (1000.0 / cfg.max_frames), d))
+            length = sinusoidal_embedding(lengths.float() * (1000.0 / cfg.max_frames), d).to(dtype)  # (B, d)
+            time = time + self.length_mlp(length)
         latent = self.latent_in(z_t)  # (B, n, d)
         if cfg.transformer.cross_attention:
             seq = torch.cat([time[:, None], latent], dim=1) + self.positions  # (B, 1 + n, d)
