@@ -450,6 +450,8 @@ def format_bench(result: dict) -> str:
 
 
 def register(groups) -> None:
+    from mld_core.cli import PRECISION_CHOICES, PRECISION_HELP
+
     p = groups["root"].add_parser(
         "bench", help="average inference time per prompt (AITS) and FLOPs; --baseline raw adds raw-motion diffusion",
         description=__doc__.split("\n\n")[1] if __doc__ else None)
@@ -465,7 +467,7 @@ def register(groups) -> None:
     p.add_argument("--ddpm-timed-steps", type=int, default=20,
                    help="raw DDPM at batch 32: steps timed before extrapolating to 1000 (default 20)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
-    p.add_argument("--precision", choices=["fp32", "bf16"], default="fp32", help="denoiser precision: fp32 (default) or bf16 (faster on CPUs with AVX512-BF16/AMX; samples close to fp32's)")
+    p.add_argument("--precision", choices=PRECISION_CHOICES, default="fp32", help=PRECISION_HELP)
     p.add_argument("--json", default=None, help="also write the numbers here")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run_cli)

@@ -13,6 +13,11 @@ import argparse
 import importlib
 import sys
 
+# Shared by generate, evaluate and bench (names here so that building the parser needs no torch).
+PRECISION_CHOICES = ("fp32", "bf16")
+PRECISION_HELP = ("denoiser precision: fp32 (default) or bf16 (faster on CPUs with AVX512-BF16 or AMX; samples "
+                  "close to but not equal to fp32's)")
+
 # Modules that contribute commands. A module listed here that is missing is skipped, so the CLI
 # keeps working while parts are being built.
 COMMAND_MODULES = (

@@ -163,6 +163,8 @@ def run(args) -> int:
 
 
 def register(groups) -> None:
+    from mld_core.cli import PRECISION_CHOICES, PRECISION_HELP
+
     p = groups["root"].add_parser("generate", help="generate motion from text (or an action / nothing)")
     p.add_argument("prompt", nargs="?", default=None, help="what the motion should be")
     p.add_argument("--prompts", type=Path, default=None, help="a file with one prompt per line ('<frames> <text>' too)")
@@ -178,5 +180,5 @@ def register(groups) -> None:
     p.add_argument("--bvh", type=Path, default=None, help="also write BVH (one file per motion)")
     p.add_argument("--fps", type=int, default=None, help="BVH frame rate (default 20)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
-    p.add_argument("--precision", choices=["fp32", "bf16"], default="fp32", help="denoiser precision: fp32 (default) or bf16 (faster on CPUs with AVX512-BF16/AMX; samples close to fp32's)")
+    p.add_argument("--precision", choices=PRECISION_CHOICES, default="fp32", help=PRECISION_HELP)
     p.set_defaults(func=run)

@@ -65,6 +65,19 @@ def test_generate_is_deterministic_per_seed(model, tmp_path):
     assert not np.allclose(runs[0], runs[2])
 
 
+def test_generate_precision_option(model, tmp_path, capsys):
+    paths = {}
+    for precision in ("fp32", "bf16"):
+        paths[precision] = tmp_path / f"{precision}.npz"
+        assert main(["generate", "a person runs", "--model", str(model), "--seed", "1", "--steps", "2",
+                     "--seconds", "2", "--precision", precision, "--out", str(paths[precision])]) == 0
+    a, b = (np.load(paths[p])["features"] for p in ("fp32", "bf16"))
+    assert a.shape == b.shape and np.isfinite(b).all() and not np.array_equal(a, b)
+    with pytest.raises(SystemExit):
+        main(["generate", "a person runs", "--model", str(model), "--precision", "fp8", "--out", str(tmp_path / "x.npz")])
+    assert "invalid choice" in capsys.readouterr().err
+
+
 def test_generate_prompt_file(model, tmp_path):
     prompts = tmp_path / "prompts.txt"
     prompts.write_text("60 a person walks\na person waves\n")

@@ -8,6 +8,8 @@ from pathlib import Path
 
 
 def register(groups) -> None:
+    from mld_core.cli import PRECISION_CHOICES, PRECISION_HELP
+
     p = groups["train"].add_parser(
         "evaluator", help="train the evaluator (motion + text encoders, action classifier) used by `evaluate`",
         description="Train the text-motion evaluator on a HumanML3D-format folder's train split "
@@ -56,7 +58,7 @@ def register(groups) -> None:
     e.add_argument("--vae-mean", action="store_true", help="vae: decode the posterior mean instead of a sample")
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
-    e.add_argument("--precision", choices=["fp32", "bf16"], default="fp32", help="denoiser precision: fp32 (default) or bf16 (faster on CPUs with AVX512-BF16/AMX; samples close to fp32's)")
+    e.add_argument("--precision", choices=PRECISION_CHOICES, default="fp32", help=PRECISION_HELP)
     e.add_argument("--name", default=None, help="row name for the model (default: its model_id)")
     e.add_argument("--json", default=None, help="write the result here (default: no file)")
     e.add_argument("--no-progress", action="store_true")
