@@ -276,8 +276,9 @@ def mld_flops(pipe, prompt: str, frames: int, steps: int, guidance_scale: float 
         f_cond = _count_flops(condition)
         cond = torch.cat([holder["null"], holder["cond"]]) if use_guidance else holder["cond"]
         rows = 2 if use_guidance else 1
-        z = torch.randn(rows, n, d)
-        f_step = _count_flops(lambda: den(z, torch.full((rows,), 500), cond, lengths.repeat(rows)))
+        dtype = next(den.parameters()).dtype  # fp32, or bf16 with --precision bf16
+        z = torch.randn(rows, n, d, dtype=dtype)
+        f_step = _count_flops(lambda: den(z, torch.full((rows,), 500), cond.to(dtype), lengths.repeat(rows)))
         f_dec = _count_flops(lambda: pipe.vae.decode(torch.randn(1, n, d), lengths))
     return {"condition": f_cond, "per_step": f_step, "steps": steps, "decode": f_dec,
             "total": f_cond + steps * f_step + f_dec}
@@ -291,8 +292,8 @@ def raw_flops(baseline: RawMotionBaseline, prompt: str, steps: int, guidance_sca
         f_cond = _count_flops(lambda: holder.update(zip(("cond", "null"), baseline.condition([prompt]))))
         cond = torch.cat([holder["null"], holder["cond"]]) if use_guidance else holder["cond"]
         rows = 2 if use_guidance else 1
-        x = torch.randn(rows, baseline.frames, baseline.feature_dim)
-        f_step = _count_flops(lambda: baseline.model(x, torch.full((rows,), 500), cond,
+        x = torch.randn(rows, baseline.frames, baseline.feature_dim, dtype=baseline.dtype)
+        f_step = _count_flops(lambda: baseline.model(x, torch.full((rows,), 500), cond.to(baseline.dtype),
                                                      torch.full((rows,), baseline.frames)))
     return {"condition": f_cond, "per_step": f_step, "steps": steps, "decode": 0, "total": f_cond + steps * f_step}
 

@@ -10,6 +10,7 @@ import torch
 
 from mld_core.bench import (RawMotionBaseline, _count_flops, _TrainMode, format_bench, mld_flops, raw_flops,
                             run_bench, time_pipeline)
+from mld_core.pipeline import MLDPipeline
 
 
 @pytest.fixture(scope="module")
@@ -82,6 +83,16 @@ def test_run_bench_with_raw_baseline_prints_ratios_and_says_untrained(pipe, tmp_
     text = format_bench(result)
     assert "UNTRAINED" in text and "extrapolated per step" in text and "timed on 1 of the 2 prompts" in text
     json.dumps(result)  # JSON-ready
+
+
+def test_run_bench_in_bf16(tmp_path):
+    from mld_core.testing import tiny_model
+
+    result = run_bench(MLDPipeline.from_pretrained(tiny_model(tmp_path / "m"), precision="bf16"), baseline="raw",
+                       prompts=1, seconds=2.0, ddpm_prompts=1, ddpm_timed_steps=1, raw_ddim_prompts=1,
+                       progress=False, log=lambda *_: None)
+    assert result["precision"] == "bf16" and "bf16 denoiser" in format_bench(result)
+    assert all(m["flops"]["per_step"] > 0 for m in result["methods"])
 
 
 def test_bench_cli_rejects_bad_arguments(capsys):
