@@ -31,6 +31,14 @@ def _fixture_rig(fixtures, name):
     return rig, bmap
 
 
+def _rig_and_map(fixtures, rig_name):
+    """(rig, joint -> bone map, parent overrides) for a fixture rig or a synthetic canonical-named one."""
+    if rig_name in SYNTHETIC:
+        return SYNTHETIC[rig_name], {n: n for n in rt.JOINT_NAMES}, {}
+    rig, bmap = _fixture_rig(fixtures, rig_name)
+    return rig, bmap.joints, bmap.parent_overrides
+
+
 def _random_roll(rig: rt.RigRest, rng) -> rt.RigRest:
     """The same rig with every bone rolled by a random angle about its own Y axis (heads and tails unchanged)."""
     mats = rig.matrices.copy()
@@ -129,11 +137,7 @@ def test_directions_mode_on_real_rest_poses(fixtures, rig_name, golden):
 
 @pytest.mark.parametrize("rig_name", FIXTURE_RIGS + tuple(sorted(SYNTHETIC)))
 def test_effectors_follow_the_source_continuously(fixtures, rig_name, takes, golden):
-    if rig_name in SYNTHETIC:
-        rig, joints, overrides = SYNTHETIC[rig_name], {n: n for n in rt.JOINT_NAMES}, {}
-    else:
-        rig, bmap = _fixture_rig(fixtures, rig_name)
-        joints, overrides = bmap.joints, bmap.parent_overrides
+    rig, joints, overrides = _rig_and_map(fixtures, rig_name)
     for name, take in [*takes.items(), ("golden", golden)]:
         result = rt.retarget(take, rig, joints, parent_overrides=overrides)
         fid = rt.fidelity(result)
@@ -158,11 +162,7 @@ def test_effectors_follow_the_source_continuously(fixtures, rig_name, takes, gol
 def test_planted_toes_stay_on_the_floor_when_the_source_foot_changes_length(fixtures, rig_name, takes, golden):
     """Generated joints do not keep bone lengths: a source foot shorter than the rig's (and varying) must not push
     the rig's toes into the floor while they are down, and a lifted foot still points where the source's does."""
-    if rig_name in SYNTHETIC:
-        rig, joints, overrides = SYNTHETIC[rig_name], {n: n for n in rt.JOINT_NAMES}, {}
-    else:
-        rig, bmap = _fixture_rig(fixtures, rig_name)
-        joints, overrides = bmap.joints, bmap.parent_overrides
+    rig, joints, overrides = _rig_and_map(fixtures, rig_name)
     lifted_checked = 0
     for take in (takes["dataset-2_walk-turn-left_normal_027"].copy(), golden.copy()):
         T = len(take)
@@ -198,11 +198,7 @@ def test_planted_toes_stay_on_the_floor_when_the_source_foot_changes_length(fixt
 def test_feet_never_go_below_their_rest_height_on_standing_rigs(fixtures, rig_name, takes):
     """Generated feet dip below their own standing height now and then: on a rig whose rest stands, no ankle or
     toe goes lower than it stands at rest (the floor), and the rest of the take is untouched."""
-    if rig_name in SYNTHETIC:
-        rig, joints, overrides = SYNTHETIC[rig_name], {n: n for n in rt.JOINT_NAMES}, {}
-    else:
-        rig, bmap = _fixture_rig(fixtures, rig_name)
-        joints, overrides = bmap.joints, bmap.parent_overrides
+    rig, joints, overrides = _rig_and_map(fixtures, rig_name)
     take = takes["dataset-2_walk-turn-left_normal_027"].copy()
     dip = 0.04 * np.exp(-0.5 * ((np.arange(len(take)) - 20) / 3.0) ** 2)  # (T,) a 4 cm dip around frame 20
     for name in ("left_ankle", "left_foot", "right_ankle", "right_foot"):
