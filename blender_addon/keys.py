@@ -108,6 +108,19 @@ def keep_previous_action(obj) -> object | None:
     return previous
 
 
+def _new_action(obj, bones, name: str, properties: dict | None):
+    """A new Action (fake user, ``properties`` as custom properties) for keys on ``bones`` of armature ``obj``;
+    refuses before creating anything when the armature lacks one of them."""
+    missing = [b for b in bones if b not in obj.pose.bones]
+    if missing:
+        raise ValueError(f"armature {obj.name!r} has no bones named {', '.join(missing)}")
+    action = bpy.data.actions.new(name)
+    action.use_fake_user = True
+    for key, value in (properties or {}).items():
+        action[key] = value
+    return action
+
+
 def channels_to_action(
     obj,
     channels: BoneChannels,
@@ -123,13 +136,7 @@ def channels_to_action(
     Pose bones keyed here are switched to quaternion rotation. Returns the Action.
     """
     pose_bones = obj.pose.bones
-    missing = [n for n in channels.names if n not in pose_bones]
-    if missing:
-        raise ValueError(f"armature {obj.name!r} has no bones named {', '.join(missing)}")
-    action = bpy.data.actions.new(name)
-    action.use_fake_user = True
-    for key, value in (properties or {}).items():
-        action[key] = value
+    action = _new_action(obj, channels.names, name, properties)
     writer = ChannelWriter(action, obj)
     frames = frame_start + np.arange(channels.frames, dtype=np.float64)
     keyed_loc = set(channels.keyed_locations)
@@ -191,13 +198,7 @@ def baked_to_action(
     """
     pose_bones = obj.pose.bones
     bones = sorted({c.group for c in baked.curves})
-    missing = [b for b in bones if b not in pose_bones]
-    if missing:
-        raise ValueError(f"armature {obj.name!r} has no bones named {', '.join(missing)}")
-    action = bpy.data.actions.new(name)
-    action.use_fake_user = True
-    for key, value in (properties or {}).items():
-        action[key] = value
+    action = _new_action(obj, bones, name, properties)
     writer = ChannelWriter(action, obj)
     for curve in baked.curves:
         fc = writer.fcurve(curve.data_path, curve.index, curve.group)

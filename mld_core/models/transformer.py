@@ -52,6 +52,7 @@ class SkipTransformer(nn.Module):
         self.output_blocks = nn.ModuleList(_layer(config) for _ in range(n_side))
         self.skip_projections = nn.ModuleList(nn.Linear(2 * config.dim, config.dim) for _ in range(n_side))
         self.norm = nn.LayerNorm(config.dim)
+        self._packed: dict = {}  # id(layer) -> prepacked weights; see pack_for_cpu_inference
 
     def _run(self, layer: nn.Module, x, padding_mask, memory, memory_padding_mask):
         if self.config.cross_attention:
@@ -61,8 +62,6 @@ class SkipTransformer(nn.Module):
         return layer(x, src_key_padding_mask=padding_mask)
 
     # -- CPU inference ------------------------------------------------------------------------------------------
-    _packed: dict = {}
-
     def pack_for_cpu_inference(self) -> bool:
         """Keep oneDNN-prepacked copies of the encoder layers' weights for inference without a padding mask (the
         denoiser's steps): each matrix is reordered once instead of on every call, which halves a step's time on a
