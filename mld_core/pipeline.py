@@ -18,6 +18,7 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
+from mld_core import coverage
 from mld_core.checkpoint import DEFAULT_MODEL_DIR, CheckpointError, ModelConfig, load_config, load_weights
 from mld_core.models.denoiser import LatentDenoiser
 from mld_core.models.vae import MotionVAE
@@ -41,6 +42,7 @@ class MLDOutput:
     fps: int = 20
     model_id: str = ""
     timings: dict = field(default_factory=dict)
+    badges: list | None = None  # per row a mld_core.eval.quality.Badges when generated with rank=True
 
 
 def _as_list(value, n: int, name: str) -> list:
@@ -68,6 +70,8 @@ class MLDPipeline:
             self.denoiser.transformer.pack_for_cpu_inference()  # no-op off CPU
         self.text_encoder = text_encoder
         self.scheduler = DDIMScheduler(config.scheduler)
+        self.coverage_index = None  # mld_core.coverage.CoverageIndex, from the model folder's coverage_index.npz
+        self._quality = None  # mld_core.eval.quality.QualityScorer, loaded on first use
         mean, std = config.mean_std
         self.mean, self.std = mean, std
 
@@ -92,7 +96,9 @@ class MLDPipeline:
                 text_encoder = load_text_encoder(config.text_encoder)
         if len(config.mean) != config.vae.feature_dim or len(config.std) != config.vae.feature_dim:
             raise CheckpointError(f"{model_dir / 'config.json'}: mean/std must have {config.vae.feature_dim} values")
-        return cls(config, vae, denoiser, text_encoder, device, precision)
+        pipe = cls(config, vae, denoiser, text_encoder, device, precision)
+        pipe.coverage_index = coverage.load_for_model(model_dir)
+        return pipe
 
     # -- sizes --------------------------------------------------------------------------------------------------
     @property
@@ -156,15 +162,35 @@ class MLDPipeline:
             return names.index(action)
         raise ValueError(f"unknown action {action!r}; this model knows: {', '.join(names)}")
 
+    # -- prompt coverage and take quality ------------------------------------------------------------------------
+    def coverage(self, prompts: str | Sequence[str]) -> list:
+        """Per prompt a ``mld_core.coverage.Coverage``: score, verdict known / near / unknown, the 3 nearest training
+        captions and the model's known contents (verdict "unavailable" for a folder without a coverage index)."""
+        prompts = [prompts] if isinstance(prompts, str) else list(prompts)
+        index = self.coverage_index
+        if index is None or self.text_encoder is None:
+            return [coverage.unavailable(p, self.config.actions) for p in prompts]
+        return index.query(prompts, self.text_encoder)
+
+    def quality_scorer(self):
+        """The take-quality scorer (the bundled evaluator and its real-data reference), loaded once."""
+        if self._quality is None:
+            from mld_core.eval.quality import QualityScorer
+
+            self._quality = QualityScorer.from_pretrained(text_encoder=self.text_encoder)
+        return self._quality
+
     # -- sampling -------------------------------------------------------------------------------------------------
     @torch.inference_mode()
     def __call__(self, prompts: str | Sequence[str], seconds: float | Sequence[float] = 4.0, *,
                  actions: Sequence | None = None, num_inference_steps: int | None = None,
                  guidance_scale: float | None = None, seed: int | Sequence[int] = 0, num_variants: int = 1,
-                 callback: Callable[[int, int], bool | None] | None = None, unconditional: bool = False) -> MLDOutput:
+                 callback: Callable[[int, int], bool | None] | None = None, unconditional: bool = False,
+                 rank: bool = False) -> MLDOutput:
         """Generate ``num_variants`` motions per prompt; row i*num_variants + v uses seed ``seed + v``, or
         ``seed[i] + v`` when ``seed`` is a sequence (one per prompt). Any row equals the single run with its seed.
-        ``unconditional`` samples with the null condition (the prompts then only label the rows)."""
+        ``unconditional`` samples with the null condition (the prompts then only label the rows). ``rank`` scores
+        every row (``out.badges``) and orders each prompt's variants best first (mld_core.eval.quality.best_first)."""
         if self.denoiser is None:
             raise CheckpointError("this model folder has only a VAE; sample with sample_prior() or train a denoiser")
         timings = {}
@@ -231,9 +257,16 @@ class MLDPipeline:
         features = self.latents_to_features(z, lengths)
         timings["decode_s"] = time.perf_counter() - t0
         joints = self.joints_from_features(features, lengths.tolist())
+        out = MLDOutput(features, joints, lengths.cpu().numpy(), row_prompts, seeds, self.config.fps,
+                        self.model_id, timings)
+        if rank:  # 6. Badges per row; each prompt's variants best first.
+            from mld_core.eval.quality import rank_output
+
+            t0 = time.perf_counter()
+            out = rank_output(out, self.quality_scorer(), num_variants, None if cond_kind == "text" else [])
+            timings["rank_s"] = time.perf_counter() - t0
         timings["total_s"] = time.perf_counter() - t_start
-        return MLDOutput(features, joints, lengths.cpu().numpy(), row_prompts, seeds, self.config.fps,
-                         self.model_id, timings)
+        return out
 
     @torch.inference_mode()
     def sample_prior(self, seconds: float = 4.0, num: int = 1, seed: int = 0) -> MLDOutput:

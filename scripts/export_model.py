@@ -1,6 +1,11 @@
 """Export a trained run folder as a shippable model folder: fp16 safetensors, config.json and MODEL_CARD.md.
 
     python scripts/export_model.py RUN_DIR [--out mld_core/weights/default] [--notes notes.md] [--model-id ID]
+        [--data DIR]
+
+The run's prompt-coverage index (coverage_index.npz, written by training) is copied; a run without one gets an
+index built from ``--data``'s train captions (mld_core.coverage), else the folder ships without one and reports
+coverage as unavailable.
 
 Refuses to replace an existing folder unless --overwrite is given; writes into a temporary folder first.
 """
@@ -51,6 +56,20 @@ contents fall back to the nearest ones. Not for commercial use.
 """
 
 
+def write_coverage_index(run: Path, folder: Path, config, data: Path | None) -> None:
+    from mld_core import coverage
+
+    if (run / coverage.INDEX_NAME).is_file():
+        shutil.copyfile(run / coverage.INDEX_NAME, folder / coverage.INDEX_NAME)
+    elif data is not None and config.denoiser.cond == "text":
+        from mld_core.models.text_encoder import load_text_encoder
+
+        coverage.build_for_folder(data, load_text_encoder(config.text_encoder)).save(folder / coverage.INDEX_NAME)
+    else:
+        print(f"note: {run} has no {coverage.INDEX_NAME}; pass --data DIR to build one (coverage: unavailable)",
+              file=sys.stderr)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path)
@@ -58,6 +77,8 @@ def main(argv=None) -> int:
     ap.add_argument("--model-id", default=None)
     ap.add_argument("--notes", type=Path, default=None, help="markdown with measurements for the card")
     ap.add_argument("--overwrite", action="store_true")
+    ap.add_argument("--data", type=Path, default=None, help="data folder to build the coverage index from "
+                    "(when the run has none)")
     args = ap.parse_args(argv)
     config = load_config(args.run)
     if config.denoiser is None:
@@ -85,6 +106,7 @@ def main(argv=None) -> int:
     tmp = Path(tempfile.mkdtemp(dir=args.out.parent, prefix=f".{args.out.name}."))
     try:
         save_model(tmp, config, vae, den, dtype=torch.float16, card=card)
+        write_coverage_index(args.run, tmp, config, args.data)
         if args.out.exists():
             shutil.rmtree(args.out)
         tmp.chmod(0o755)

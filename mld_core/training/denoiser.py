@@ -148,6 +148,16 @@ def _cached(path: Path, make) -> dict:
     return data
 
 
+def _write_coverage_index(out: Path, units: list[Unit], encoder) -> None:
+    """The run's prompt-coverage index (mld_core.coverage) from its training captions and content labels."""
+    from mld_core import coverage
+
+    pairs = [(c, u.label) for u in units for c in u.captions]
+    known = sorted({label for _, label in pairs if label != "?"})
+    index = coverage.build_index([c for c, _ in pairs], [label for _, label in pairs], encoder, known)
+    index.save(out / coverage.INDEX_NAME)
+
+
 def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     from mld_core.data.dataset import load_split
 
@@ -190,6 +200,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
         encoder = load_text_encoder(cfg.text_encoder)
         dcfg.text_dim = encoder.dim
         text = _cached(out / TEXT_CACHE, lambda: embed_captions(encoder, captions, dcfg.max_text_tokens))
+        _write_coverage_index(out, units, encoder)
         del encoder
     label_ids = torch.tensor([actions.index(units[u].label) if units[u].label in actions else 0
                               for u in unit_of.tolist()])

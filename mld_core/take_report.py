@@ -1,0 +1,100 @@
+"""What the user is told about prompts and takes: coverage warnings, the best-K cut, badge tables and records.
+
+Shared by ``python -m mld_core generate`` and the Blender add-on (batch manifest, Action custom properties), so
+that every place a take appears says the same thing about it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Sequence
+
+import numpy as np
+
+from mld_core.coverage import Coverage
+from mld_core.eval.quality import Badges, format_table
+
+
+class BeyondModel(ValueError):
+    """A prompt the model has not learned, refused under ``strict``."""
+
+
+def check_prompts(pipe, prompts: Sequence[str], *, strict: bool = False, warn=print) -> list[Coverage]:
+    """Coverage per unique prompt; one warning line per ``unknown`` prompt through ``warn``; under ``strict`` an
+    unknown prompt raises BeyondModel (before anything is generated)."""
+    unique = list(dict.fromkeys(prompts))
+    found = {c.prompt: c for c in pipe.coverage(unique)}
+    unknown = [found[p] for p in unique if found[p].verdict == "unknown"]
+    if strict and unknown:
+        raise BeyondModel(unknown[0].warning() + " (--strict: nothing generated)")
+    for c in unknown:
+        warn(f"warning: {c.warning()}")
+    return [found[p] for p in prompts]
+
+
+def keep_best(out, num_variants: int, best: int | None):
+    """The first ``best`` rows of each prompt's group (rows already best first); ``out`` itself when None."""
+    if best is None or best >= num_variants:
+        return out
+    keep = [i for i in range(len(out.lengths)) if i % num_variants < best]
+    return replace(out, features=out.features[keep], joints=out.joints[keep], lengths=out.lengths[keep],
+                   prompts=[out.prompts[i] for i in keep], seeds=[out.seeds[i] for i in keep],
+                   badges=[out.badges[i] for i in keep] if out.badges is not None else None)
+
+
+def badge_table(out) -> str:
+    """The badge table of an output generated with rank=True, one block per prompt."""
+    blocks = []
+    for prompt in dict.fromkeys(out.prompts):
+        rows = [i for i, p in enumerate(out.prompts) if p == prompt]
+        blocks.append(f"{prompt!r}:\n" + format_table([out.seeds[i] for i in rows], [out.badges[i] for i in rows]))
+    return "\n".join(blocks)
+
+
+def take_record(coverage: Coverage | None, badges: Badges | None) -> dict:
+    """A JSON-able record of one take's coverage and badges (batch manifest, .npz)."""
+    record = {}
+    if coverage is not None:
+        record["coverage"] = coverage.as_dict()
+    if badges is not None:
+        record["badges"] = badges.as_dict()
+    return record
+
+
+BADGE_PROPERTIES = {"adherence": "adherence", "similarity": "similarity", "skating": "skating",
+                    "float": "foot_float", "penetration_cm": "penetration_cm", "jitter": "jitter"}
+
+
+def custom_properties(coverage: Coverage | None, badges: Badges | None, prefix: str = "mld_") -> dict:
+    """Flat numbers and strings for an Action's custom properties (mld_coverage_verdict, mld_adherence, ...);
+    values that are missing are left out."""
+    props = {}
+    if coverage is not None:
+        props.update(coverage_verdict=coverage.verdict, coverage_score=float(coverage.score))
+        if coverage.nearest:
+            props["coverage_nearest"] = coverage.nearest[0][0]
+    if badges is not None:
+        for key, value in badges.as_dict().items():
+            if value is not None:
+                props[BADGE_PROPERTIES[key]] = float(value)
+    return {prefix + k: v for k, v in props.items()}
+
+
+def records_for(out, coverages: Sequence[Coverage] | None) -> list[dict]:
+    """Per row of ``out``: its prompt's coverage and its badges."""
+    by_prompt = {c.prompt: c for c in (coverages or [])}
+    badges = out.badges or [None] * len(out.lengths)
+    return [take_record(by_prompt.get(p), b) for p, b in zip(out.prompts, badges)]
+
+
+def known_contents_lines(coverage: Coverage) -> list[str]:
+    """'What this model knows', one line per content."""
+    from mld_core.coverage import describe_content
+
+    return [describe_content(c) for c in coverage.known_contents]
+
+
+def as_array(records: list[dict]) -> np.ndarray:
+    import json
+
+    return np.array(json.dumps(records))
