@@ -38,6 +38,8 @@ class Take:
     name: str = ""
     timings: dict = field(default_factory=dict)
     contacts: np.ndarray | None = None  # (T, 4) the features' foot-contact channels (> 0.5 = contact)
+    coverage: object = None  # mld_core.coverage.Coverage of the prompt (None: not checked)
+    badges: object = None  # mld_core.eval.quality.Badges (None: not scored)
 
     @property
     def frames(self) -> int:
@@ -61,13 +63,19 @@ class Take:
             "addon_version": ADDON_VERSION_STRING,
             "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         }
-        return {PROVENANCE_PREFIX + k: v for k, v in data.items()}
+        from mld_core.take_report import custom_properties
+
+        return {**{PROVENANCE_PREFIX + k: v for k, v in data.items()},
+                **custom_properties(self.coverage, self.badges, PROVENANCE_PREFIX)}
 
     def summary(self) -> dict:
         """A JSON-able record (batch manifests)."""
         prov = {k.removeprefix(PROVENANCE_PREFIX): v for k, v in self.provenance().items()}
         prov["name"] = self.name
         prov["generate_s"] = round(self.seconds_generated, 4)
+        from mld_core.take_report import take_record
+
+        prov.update(take_record(self.coverage, self.badges))
         return prov
 
 
@@ -93,9 +101,11 @@ def rotations_from_features(features: np.ndarray):
 
 
 def generate(pipe, request: GenerateRequest, callback=None, check_cancel=None) -> GenerationResult:
-    """Run ``pipe`` for one request; one :class:`Take` per variant (in order)."""
+    """Run ``pipe`` for one request; one :class:`Take` per variant, best first (pipeline ``rank=True``), each with
+    the prompt's coverage and its badges."""
     start = time.perf_counter()
     guidance = request.guidance
+    coverage = pipe.coverage([request.prompt])[0] if hasattr(pipe, "coverage") else None
     out = pipe(
         [request.prompt],
         seconds=request.seconds,
@@ -104,6 +114,7 @@ def generate(pipe, request: GenerateRequest, callback=None, check_cancel=None) -
         seed=request.seed,
         num_variants=request.variants,
         callback=callback,
+        rank=True,
     )
     generated = time.perf_counter() - start
     if check_cancel is not None:
@@ -124,7 +135,7 @@ def generate(pipe, request: GenerateRequest, callback=None, check_cancel=None) -
         take = Take(
             prompt=request.prompt,
             seed=int(out.seeds[row]),
-            variant=row % request.variants,
+            variant=int(out.seeds[row]) - int(request.seed),
             request=request,
             joints=joints,
             local_quats=quats,
@@ -136,6 +147,8 @@ def generate(pipe, request: GenerateRequest, callback=None, check_cancel=None) -
             seconds_generated=generated,
             timings=dict(getattr(out, "timings", {}) or {}),
             contacts=np.asarray(out.features[row, :n, -4:], np.float64),
+            coverage=coverage,
+            badges=out.badges[row] if getattr(out, "badges", None) is not None else None,
         )
         take.name = action_name(request.prompt, request.seed, take.variant, request.variants)
         takes.append(take)

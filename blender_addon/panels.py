@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import env, runtime
+from . import env, quality_ui, runtime
 from .operators import resolve_target
 
 
@@ -33,6 +33,7 @@ class MLD_PT_generate(bpy.types.Panel):
             col.label(text="(or Preferences > Add-ons > MLD Text to Motion)")
 
         layout.prop(settings, "prompt", text="")
+        quality_ui.draw_coverage(layout, settings, context)
         col = layout.column(align=True)
         row = col.row(align=True)
         row.prop(settings, "seconds")
@@ -80,6 +81,7 @@ class MLD_PT_generate(bpy.types.Panel):
                 box.label(text=f"{settings.last_frames} frames in {settings.last_seconds:.2f} s", icon="CHECKMARK")
                 for name in settings.last_actions.split(", "):
                     box.label(text=name, icon="ACTION")
+                quality_ui.draw_badges(layout, settings)
             else:
                 box.label(text=settings.last_message, icon="INFO")
 
@@ -106,11 +108,13 @@ def register():
     for cls in classes:
         bpy.utils.register_class(cls)
     retarget_ui.register()  # the Retarget sub-panel (after its parent), its operators and Object.mld_retarget
+    quality_ui.register()  # the "What This Model Knows" sub-panel
 
 
 def unregister():
     from . import retarget_ui
 
+    quality_ui.unregister()
     retarget_ui.unregister()
     for cls in reversed(classes):
         bpy.utils.unregister_class(cls)

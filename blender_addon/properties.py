@@ -5,6 +5,7 @@ from __future__ import annotations
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
+from . import quality_ui
 from .retarget_wiring import DEFAULT_TOLERANCE_DEG, ROTATION_CHOICES
 
 from .validation import DEFAULT_MAX_SECONDS, DEFAULT_MIN_SECONDS, MAX_STEPS, MAX_VARIANTS, SEED_MAX
@@ -19,6 +20,8 @@ class MLD_SceneSettings(bpy.types.PropertyGroup):
         name="Prompt",
         description="What the character does, in plain English (e.g. 'a person walks forward and waves')",
         default="a person walks forward and waves with the right hand",
+        update=lambda self, context: quality_ui.prompt_changed(self, context),  # coverage as the user types
+        options={"TEXTEDIT_UPDATE"},
     )
     seconds: FloatProperty(
         name="Seconds",

@@ -91,15 +91,19 @@ def unavailable(prompt: str, known_contents: Sequence[str] = ()) -> Coverage:
     return Coverage(prompt, 0.0, "unavailable", [], list(known_contents))
 
 
-def verdict_for(score: float, known_min: float = KNOWN_MIN, near_min: float = NEAR_MIN) -> str:
+def verdict_for(score: float, known_min: float | None = None, near_min: float | None = None) -> str:
+    known_min = KNOWN_MIN if known_min is None else known_min
+    near_min = NEAR_MIN if near_min is None else near_min
     return "known" if score >= known_min else "near" if score >= near_min else "unknown"
 
 
 class CoverageIndex:
-    """Normalised training captions + their unit sentence vectors; queried with the model's text encoder."""
+    """Normalised training captions + their unit sentence vectors; queried with the model's text encoder.
+    ``thresholds`` (known_min, near_min) belong to the sentence encoder; default: KNOWN_MIN, NEAR_MIN (MiniLM)."""
 
     def __init__(self, captions: Sequence[str], contents: Sequence[str], embeddings: np.ndarray,
-                 known_contents: Sequence[str], text_encoder: dict | None = None):
+                 known_contents: Sequence[str], text_encoder: dict | None = None,
+                 thresholds: tuple[float, float] | None = None):
         emb = np.asarray(embeddings)
         if emb.ndim != 2 or len(emb) != len(captions) or len(contents) != len(captions):
             raise ValueError(f"coverage index: {len(captions)} captions, {len(contents)} contents, "
@@ -110,6 +114,7 @@ class CoverageIndex:
         self._emb32 = self.embeddings.astype(np.float32)
         self.known_contents = list(known_contents)
         self.text_encoder = dict(text_encoder or {})
+        self.thresholds = tuple(thresholds) if thresholds else (KNOWN_MIN, NEAR_MIN)
 
     def __len__(self) -> int:
         return len(self.captions)
@@ -123,7 +128,8 @@ class CoverageIndex:
             top = np.argsort(-row, kind="stable")[:NEAREST]
             score = float(np.clip(row[top[0]], 0.0, 1.0)) if len(top) else 0.0
             nearest = [(self.captions[i], float(row[i]), self.contents[i]) for i in top]
-            out.append(Coverage(prompt, score, verdict_for(score), nearest, list(self.known_contents)))
+            out.append(Coverage(prompt, score, verdict_for(score, *self.thresholds), nearest,
+                                list(self.known_contents)))
         return out
 
     def query(self, prompts: Sequence[str], text_encoder) -> list[Coverage]:
@@ -139,7 +145,7 @@ class CoverageIndex:
 
         path = Path(path)
         meta = json.dumps({"format": FORMAT, "version": 1, "text_encoder": self.text_encoder,
-                           "known_contents": self.known_contents})
+                           "known_contents": self.known_contents, "thresholds": list(self.thresholds)})
 
         def write(tmp):
             with open(tmp, "wb") as f:
@@ -158,7 +164,8 @@ class CoverageIndex:
                 if meta.get("format") != FORMAT:
                     raise ValueError(f"format {meta.get('format')!r}")
                 return cls([str(c) for c in data["captions"]], [str(c) for c in data["contents"]],
-                           data["embeddings"], meta.get("known_contents", []), meta.get("text_encoder"))
+                           data["embeddings"], meta.get("known_contents", []), meta.get("text_encoder"),
+                           meta.get("thresholds"))
         except (OSError, ValueError, KeyError) as exc:
             raise ValueError(f"cannot read the coverage index {path}: {exc}") from None
 

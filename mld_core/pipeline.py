@@ -97,7 +97,10 @@ class MLDPipeline:
         if len(config.mean) != config.vae.feature_dim or len(config.std) != config.vae.feature_dim:
             raise CheckpointError(f"{model_dir / 'config.json'}: mean/std must have {config.vae.feature_dim} values")
         pipe = cls(config, vae, denoiser, text_encoder, device, precision)
-        pipe.coverage_index = coverage.load_for_model(model_dir)
+        try:
+            pipe.coverage_index = coverage.load_for_model(model_dir)
+        except ValueError as exc:
+            raise CheckpointError(str(exc)) from None
         return pipe
 
     # -- sizes --------------------------------------------------------------------------------------------------

@@ -6,13 +6,15 @@ tests/fixtures/coverage_known.txt holds paraphrases of contents the bundled mode
 tests/fixtures/coverage_absent.txt prompts of motions absent from its training data. Prints, for the thresholds
 in mld_core.coverage (and with --sweep for others), the share of each set per verdict against the targets:
 <= 5% of the known set ``unknown``, >= 95% of the absent set ``unknown`` or ``near``. Also checks that adding
-side or style words to every prompt changes no verdict.
+side or style words to every prompt changes no verdict, and times one prompt's check (what the panel runs as the
+user types).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -93,6 +95,13 @@ def main(argv=None) -> int:
             flips += sum(a.verdict != b.verdict for a, b in zip(results[k], decorated))
     total = len(DECORATIONS) * sum(len(v) for v in sets.values())
     print(f"verdicts changed by adding side/style words ({'; '.join(DECORATIONS)}): {flips} of {total}")
+    times = []
+    for prompt in sets["known"] + sets["absent"]:  # one prompt at a time, as the panel asks while the user types
+        t0 = time.perf_counter()
+        pipe.coverage(prompt)
+        times.append(time.perf_counter() - t0)
+    print(f"one prompt's coverage (text encoder + index, {torch.get_num_threads()} thread): median "
+          f"{np.median(times) * 1000:.1f} ms, max {np.max(times) * 1000:.1f} ms over {len(times)} prompts")
     if args.sweep:
         print("\n| known >= | near >= | known set unknown | absent set known |")
         print("|---|---|---|---|")

@@ -1,0 +1,87 @@
+"""Coverage and badges where a Blender user meets a take: Action custom properties, variants best first, the
+panel's coverage line, badges and "What This Model Knows" (bpy in a subprocess, a tiny model with a coverage
+index)."""
+
+from __future__ import annotations
+
+import pytest
+
+from bpy_util import REPO, requires_bpy, run_bpy_script
+from mld_core.eval import quality
+
+pytestmark = [pytest.mark.bpy, requires_bpy]
+
+SCRIPT = r"""
+import sys, time
+sys.path.insert(0, {repo!r})
+sys.path.insert(0, {tests!r})
+import bpy, addon_utils
+bpy.ops.wm.read_factory_settings(use_empty=True)
+addon_utils.enable("blender_addon", default_set=True)
+from blender_addon import panels, quality_ui
+from recording_layout import Host, Layout
+
+ctx = bpy.context
+s = ctx.scene.mld_motion
+out = {{}}
+bpy.ops.mld.create_armature()
+ctx.scene.render.fps = 20
+s.prompt, s.seconds, s.seed, s.steps, s.variants = "a person walks", 1.5, 2, 2, 3
+out["generate"] = sorted(bpy.ops.mld.generate())
+names = s.last_actions.split(", ")
+out["props"] = [{{k: a[k] for k in a.keys() if k.startswith("mld_")}} for a in (bpy.data.actions[n] for n in names)]
+out["assigned"] = s.target.animation_data.action.name == names[0]
+
+# The coverage line: ask the watcher as the prompt's update callback does while the user types (a script runs in
+# background mode, where the callback leaves it to the script), wait for the verdict, draw the panel.
+key = quality_ui._model_key(ctx)
+for text in ("a person walks", "a person juggles"):
+    quality_ui.watcher().request(text, key)
+    deadline = time.time() + 60
+    while quality_ui.watcher().result(text, key) is None and time.time() < deadline:
+        time.sleep(0.02)
+    s.prompt = text
+    Layout.calls.clear()
+    panels.MLD_PT_generate.draw(Host(), ctx)
+    out[text] = [c[1] for c in Layout.calls if c[0] == "label"]
+out["check_s"] = quality_ui.watcher().seconds
+Layout.calls.clear()
+quality_ui.MLD_PT_known.draw(Host(), ctx)
+out["known"] = [c[1] for c in Layout.calls if c[0] == "label"]
+emit(out)
+"""
+
+
+@pytest.fixture(scope="module")
+def tiny_with_index(tmp_path_factory):
+    from mld_core.testing import tiny_model
+    from test_quality import tiny_index
+
+    model = tiny_model(tmp_path_factory.mktemp("tiny") / "tiny_model")
+    tiny_index(model)
+    return model
+
+
+def test_actions_carry_coverage_and_badges_and_the_panel_shows_them(tmp_path, tiny_with_index):
+    r = run_bpy_script(SCRIPT.format(repo=str(REPO), tests=str(REPO / "tests")), tmp_path, timeout=180,
+                       MLD_MODEL_DIR=tiny_with_index)
+    assert r["generate"] == ["FINISHED"] and r["assigned"]
+    props = r["props"]
+    assert len(props) == 3 and {p["mld_seed"] for p in props} == {2, 3, 4}
+    for p in props:
+        assert p["mld_coverage_verdict"] == "known" and p["mld_coverage_score"] == pytest.approx(1.0, abs=1e-3)
+        assert p["mld_coverage_nearest"] == "a person walks."
+        assert {"mld_adherence", "mld_similarity", "mld_skating", "mld_foot_float", "mld_penetration_cm",
+                "mld_jitter"} <= set(p)
+        assert 0.0 <= p["mld_adherence"] <= 100.0 and 0.0 <= p["mld_skating"] <= 1.0
+    scores = [quality.rank_score(quality.Badges(p["mld_adherence"], p["mld_similarity"], p["mld_skating"],
+                                                p["mld_foot_float"], p["mld_penetration_cm"], p["mld_jitter"]))
+              for p in props]
+    assert scores == sorted(scores, reverse=True)  # variants created best first, the best one assigned
+    walk, juggle = r["a person walks"], r["a person juggles"]
+    assert [t for t in walk if t.startswith("Known to this model (1.00)")]
+    assert [t for t in juggle if t.startswith("Not learned by this model") and "closest 'a person walks'" in t]
+    assert [t for t in walk if t.startswith("Foot skating: ")] and [t for t in walk if t.startswith("Adherence: ")]
+    assert "planted toes sliding (real walks: 0.2)" in walk
+    assert r["known"] == ["run: runs forward", "walk: walks forward"]
+    assert len(r["check_s"]) == 2
