@@ -363,6 +363,8 @@ def run(args) -> int:
         )
         take = result.takes[0]
         take.name = report.actions[0]
+        if take.coverage is not None and take.coverage.verdict == "unknown":
+            print(f"warning: line {line.line}: {take.coverage.warning()}", file=sys.stderr)
         record = take.summary()
         record.update(
             line=line.line,

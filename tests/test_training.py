@@ -87,6 +87,11 @@ def test_train_vae_then_denoiser_then_generate(folder, tmp_path):
     pipe = MLDPipeline.from_pretrained(den_run)
     out = pipe(["a person walks"], seconds=1.5, num_inference_steps=3)
     assert out.joints.shape == (1, 30, 22, 3) and np.isfinite(out.joints).all()
+    # the run ships its prompt-coverage index: the training captions (normalised) and contents
+    index = pipe.coverage_index
+    assert index is not None and sorted(index.known_contents) == ["a", "b"]
+    assert "someone strolls" in index.captions and len(index) == 7  # "a person walks 0".."5" + "someone strolls"
+    assert pipe.coverage("someone strolls")[0].score == pytest.approx(1.0, abs=1e-3)
 
 
 @pytest.mark.parametrize("bf16", [False, True])
