@@ -117,16 +117,11 @@ class MLD_PT_known(bpy.types.Panel):
             col.label(text=describe_content(label))
 
 
-classes = (MLD_PT_known,)
-
-
 def register():
-    for cls in classes:
-        bpy.utils.register_class(cls)
+    bpy.utils.register_class(MLD_PT_known)
 
 
 def unregister():
-    for cls in reversed(classes):
-        bpy.utils.unregister_class(cls)
+    bpy.utils.unregister_class(MLD_PT_known)
     if bpy.app.timers.is_registered(_poll):
         bpy.app.timers.unregister(_poll)

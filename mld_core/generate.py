@@ -59,7 +59,7 @@ def read_prompt_file(path: Path, fps: int = 20) -> list[PromptLine]:
 
 def write_npz(path: Path, out, records: list | None = None) -> None:
     """``records``: per row a JSON-able dict (coverage, badges), stored as one JSON string ``quality``."""
-    extra = {"quality": np.array(json.dumps(records))} if records else {}
+    extra = {"quality": np.array(json.dumps(records))} if records and any(records) else {}
 
     def save(tmp):
         with open(tmp, "wb") as f:

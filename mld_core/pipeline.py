@@ -18,7 +18,7 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
-from mld_core import coverage
+from mld_core.coverage import load_for_model, unavailable
 from mld_core.checkpoint import DEFAULT_MODEL_DIR, CheckpointError, ModelConfig, load_config, load_weights
 from mld_core.models.denoiser import LatentDenoiser
 from mld_core.models.vae import MotionVAE
@@ -98,7 +98,7 @@ class MLDPipeline:
             raise CheckpointError(f"{model_dir / 'config.json'}: mean/std must have {config.vae.feature_dim} values")
         pipe = cls(config, vae, denoiser, text_encoder, device, precision)
         try:
-            pipe.coverage_index = coverage.load_for_model(model_dir)
+            pipe.coverage_index = load_for_model(model_dir)
         except ValueError as exc:
             raise CheckpointError(str(exc)) from None
         return pipe
@@ -172,7 +172,7 @@ class MLDPipeline:
         prompts = [prompts] if isinstance(prompts, str) else list(prompts)
         index = self.coverage_index
         if index is None or self.text_encoder is None:
-            return [coverage.unavailable(p, self.config.actions) for p in prompts]
+            return [unavailable(p, self.config.actions) for p in prompts]
         return index.query(prompts, self.text_encoder)
 
     def quality_scorer(self):

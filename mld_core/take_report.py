@@ -9,8 +9,6 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Sequence
 
-import numpy as np
-
 from mld_core.coverage import Coverage
 from mld_core.eval.quality import Badges, format_table
 
@@ -85,16 +83,3 @@ def records_for(out, coverages: Sequence[Coverage] | None) -> list[dict]:
     by_prompt = {c.prompt: c for c in (coverages or [])}
     badges = out.badges or [None] * len(out.lengths)
     return [take_record(by_prompt.get(p), b) for p, b in zip(out.prompts, badges)]
-
-
-def known_contents_lines(coverage: Coverage) -> list[str]:
-    """'What this model knows', one line per content."""
-    from mld_core.coverage import describe_content
-
-    return [describe_content(c) for c in coverage.known_contents]
-
-
-def as_array(records: list[dict]) -> np.ndarray:
-    import json
-
-    return np.array(json.dumps(records))

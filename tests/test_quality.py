@@ -246,3 +246,39 @@ def test_generate_best_keeps_the_top_k_with_a_table(model_with_index, tmp_path, 
     assert scores[0] >= scores[1] and records[0]["coverage"]["verdict"] == "known"
     assert main(["generate", "a person walks", "--model", str(model_with_index), "--variants", "2", "--best", "3",
                  "--out", str(out)]) == 2
+
+
+# -- the panel's watcher (bpy-free part) ---------------------------------------------------------------------------
+def test_coverage_watcher_checks_only_the_last_edit_off_the_main_thread():
+    import threading
+    import time
+
+    from blender_addon.coverage_watch import CoverageWatcher, badge_lines, coverage_line
+
+    seen = []
+
+    def check(text, key):
+        seen.append((text, key, threading.current_thread().name))
+        if text == "boom":
+            raise RuntimeError("no model")
+        return coverage.Coverage(text, 0.5, "unknown", [("a person walks.", 0.5, "walk")])
+
+    watcher = CoverageWatcher(check, debounce_s=0.05)
+    for typed in ("a p", "a pe", "a person swims"):  # keystrokes faster than the debounce
+        watcher.request(typed, "model")
+    deadline = time.monotonic() + 10
+    while watcher.pending and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert seen == [("a person swims", "model", "mld-coverage")]
+    assert watcher.result("a p", "model") is None and watcher.result("a person swims", "other model") is None
+    found = watcher.result("a person swims", "model")
+    assert coverage_line(found) == ("ERROR", "Not learned by this model (0.50): closest 'a person walks'")
+    watcher.request("a person swims", "model")  # answered from the cache: no second check
+    watcher.request("boom", "model")
+    while watcher.pending and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert [s[0] for s in seen] == ["a person swims", "boom"]
+    assert coverage_line(watcher.result("boom", "model")) is None  # a failed check shows nothing
+    assert badge_lines({"mld_skating": 0.25, "mld_adherence": 61.7}) == [
+        ("Adherence: 62", "match to the prompt: percentile of real clips"),
+        ("Foot skating: 0.25", "planted toes sliding (real walks: 0.2)")]
