@@ -282,3 +282,21 @@ def test_coverage_watcher_checks_only_the_last_edit_off_the_main_thread():
     assert badge_lines({"mld_skating": 0.25, "mld_adherence": 61.7}) == [
         ("Adherence: 62", "match to the prompt: percentile of real clips"),
         ("Foot skating: 0.25", "planted toes sliding (real walks: 0.2)")]
+
+
+def test_export_model_ships_the_run_index(tmp_path):
+    import sys
+
+    from conftest import REPO
+    from mld_core.testing import tiny_model
+
+    sys.path.insert(0, str(REPO / "scripts"))
+    import export_model
+
+    run = tiny_model(tmp_path / "run")
+    assert export_model.main([str(run), "--out", str(tmp_path / "bare")]) == 0
+    assert not (tmp_path / "bare" / coverage.INDEX_NAME).exists()  # nothing to copy, no --data: unavailable
+    tiny_index(run)
+    assert export_model.main([str(run), "--out", str(tmp_path / "shipped")]) == 0
+    shipped = coverage.CoverageIndex.load(tmp_path / "shipped" / coverage.INDEX_NAME)
+    assert shipped.captions == ["a person walks.", "zebra"] and shipped.thresholds == (0.97, 0.9)
