@@ -50,6 +50,7 @@ childish playful playfully young youthful lively energetic energetically active 
 weary wearily exhausted sleepy worn lazy lazily theatrical theatrically exaggerated showy cocky thuggish giant huge
 heavy heavily lumbering relaxed calm calmly excited excitedly slowly quickly briskly stiffly lightly strong
 """.split())
+SUBJECT_WORDS = frozenset("a an the person someone man woman".split())  # only for listing distinct neighbours
 _WORD = re.compile(r"[a-z0-9]+(?:'[a-z]+)?")
 
 
@@ -76,11 +77,8 @@ class Coverage:
         """One line for an ``unknown`` prompt ('' otherwise)."""
         if self.verdict != "unknown":
             return ""
-        firsts = {}
-        for caption, sim, content in self.nearest:  # the nearest caption of each content, at most two
-            firsts.setdefault(content, (caption, sim))
-        closest = "; ".join(f'"{c}" ({s:.2f})' for c, s in list(firsts.values())[:2])
-        return f'this model has not learned "{self.prompt}" (coverage {self.score:.2f}); the closest it knows: {closest}'
+        closest = "; ".join(f'"{c}" ({s:.3f})' for c, s, _ in self.nearest[:2])
+        return f'this model has not learned "{self.prompt}" (coverage {self.score:.3f}); the closest it knows: {closest}'
 
     def as_dict(self) -> dict:
         return {"verdict": self.verdict, "score": round(float(self.score), 4),
@@ -125,7 +123,7 @@ class CoverageIndex:
         sims = np.asarray(vectors, np.float32) @ self._emb32.T  # (B, N)
         out = []
         for prompt, row in zip(prompts, sims):
-            top = np.argsort(-row, kind="stable")[:NEAREST]
+            top = _distinct(np.argsort(-row, kind="stable")[: 8 * NEAREST], self.captions)[:NEAREST]
             score = float(np.clip(row[top[0]], 0.0, 1.0)) if len(top) else 0.0
             nearest = [(self.captions[i], float(row[i]), self.contents[i]) for i in top]
             out.append(Coverage(prompt, score, verdict_for(score, *self.thresholds), nearest,
@@ -168,6 +166,21 @@ class CoverageIndex:
                            meta.get("thresholds"))
         except (OSError, ValueError, KeyError) as exc:
             raise ValueError(f"cannot read the coverage index {path}: {exc}") from None
+
+
+def _distinct(order: np.ndarray, captions: Sequence[str]) -> list[int]:
+    """``order`` without captions that only repeat an earlier one with another subject ("a person bows." after
+    "the person bows.")."""
+    seen, keep = set(), []
+    for i in order.tolist():
+        words = normalise(captions[i]).split()
+        while words and words[0] in SUBJECT_WORDS:
+            words.pop(0)
+        gist = " ".join(words)
+        if gist not in seen:
+            seen.add(gist)
+            keep.append(i)
+    return keep
 
 
 def encode(text_encoder, texts: Sequence[str], batch_size: int = 256) -> np.ndarray:
