@@ -110,6 +110,9 @@ def main(argv=None) -> int:
     print("| pick | pass rate |\n|---|---|")
     for k in PICKS:
         print(f"| {k} | {np.mean(results[k]):.3f} |")
+    diff = np.asarray(results["ranked_first"], float) - np.asarray(results["mean_of_n"], float)
+    print(f"\nranked first - expected N=1, paired over prompt groups: {diff.mean():+.3f} "
+          f"(95% interval +-{1.96 * diff.std(ddof=1) / np.sqrt(len(diff)):.3f})")
     print("\n| content | groups | " + " | ".join(PICKS) + " |\n|---|---|" + "---|" * len(PICKS))
     for c, picks in per_content.items():
         print(f"| {c} | {len(picks['seed_base'])} | " + " | ".join(f"{np.mean(picks[k]):.2f}" for k in PICKS) + " |")

@@ -91,6 +91,9 @@ def test_ranking_is_deterministic_and_documented():
     seeds = [10, 11, 12, 13, 14]
     assert quality.rank_score(b[1]) == pytest.approx(0.9 - 0.3)
     assert quality.rank_score(b[4]) == pytest.approx(0.8 - 0.15)
+    # jitter counts both ways: half or twice the capture's jerk cost the same
+    assert quality.rank_score(_badges(50, jitter=0.5)) == pytest.approx(quality.rank_score(_badges(50, jitter=2.0)))
+    assert quality.rank_score(_badges(50, jitter=0.5)) == pytest.approx(0.5 - 0.25 * np.log(2))
     order = quality.best_first(b, seeds)
     assert order == [2, 4, 1, 0, 3]  # equal scores: the lower seed first
     perm = [3, 1, 4, 0, 2]

@@ -42,9 +42,11 @@ FLIGHT_FREE_S = 0.25  # a running stride's flight (real runs: 0.1-0.2 s) never c
 
 REFERENCE_NAME = "quality_reference.json"
 
-# rank_score weights (docs/quality.md): adherence leads; each physical fault costs up to about half of it.
+# rank_score weights (docs/quality.md): adherence leads; each physical fault costs up to about half of it. Jitter
+# counts both ways: a take far smoother than the capture has lost motion (waves that barely swing), one far jerkier
+# shakes.
 RANK_WEIGHTS = {"skating": 0.5, "float": 0.5, "penetration_per_cm": 0.05, "penetration_cap_cm": 10.0,
-                "jitter_over_1": 0.25}
+                "jitter_log": 0.25}
 
 EXPLANATIONS = {
     "adherence": "how well the motion matches the prompt, as a percentile of real clips with their own captions",
@@ -149,12 +151,12 @@ def physical_badges(joints, fps: float = 20.0, reference_jerk: float | None = No
 
 def rank_score(b: Badges) -> float:
     """Higher is better: adherence / 100 - 0.5 skating - 0.5 float - 0.05 / cm penetration (capped at 10 cm)
-    - 0.25 per unit of jitter above 1 (adherence counts 0.5 when unknown)."""
+    - 0.25 |ln jitter| (0 for real-like jerk; adherence counts 0.5 when unknown)."""
     w = RANK_WEIGHTS
     adherence = 0.5 if b.adherence is None else b.adherence / 100.0
     return float(adherence - w["skating"] * b.skating - w["float"] * b.float
                  - w["penetration_per_cm"] * min(b.penetration_cm, w["penetration_cap_cm"])
-                 - w["jitter_over_1"] * max(0.0, b.jitter - 1.0))
+                 - w["jitter_log"] * abs(np.log(max(b.jitter, 1e-3))))
 
 
 def best_first(badges: Sequence[Badges], seeds: Sequence[int]) -> list[int]:
