@@ -48,14 +48,6 @@ REFERENCE_NAME = "quality_reference.json"
 RANK_WEIGHTS = {"skating": 0.5, "float": 0.5, "penetration_per_cm": 0.05, "penetration_cap_cm": 10.0,
                 "jitter_log": 0.25}
 
-EXPLANATIONS = {
-    "adherence": "how well the motion matches the prompt, as a percentile of real clips with their own captions",
-    "skating": "share of frames where a planted toe slides over the floor (real walks: about 0.2)",
-    "float": "share of frames with no foot near the floor while not jumping (real: 0)",
-    "penetration": "deepest joint below the floor, in centimetres (real: 0)",
-    "jitter": "mean joint jerk relative to motion capture (1.0 = as smooth as real data)",
-}
-
 
 def _joints(joints) -> np.ndarray:
     j = np.asarray(joints, dtype=np.float64)
