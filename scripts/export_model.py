@@ -52,7 +52,8 @@ Motion Latent Diffusion (Chen et al., CVPR 2023) text-to-motion model, trained f
 ## Limits
 Trained on 24 content classes of one dataset (walking, running, turning, waving and raising hands, a few gestures
 and dances, bows, punches, kicks, with 7-15 styles such as elderly, tired, happy, feminine). Prompts far from those
-contents fall back to the nearest ones. Not for commercial use.
+contents fall back to the nearest ones; the folder's `coverage_index.npz` (the training captions' sentence vectors)
+lets the pipeline say so before generating (`MLDPipeline.coverage`, docs/quality.md). Not for commercial use.
 """
 
 
