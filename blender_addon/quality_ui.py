@@ -10,6 +10,7 @@ from __future__ import annotations
 import bpy
 
 from .coverage_watch import CoverageWatcher, badge_lines, coverage_line
+from .env import missing_modules
 
 POLL_S = 0.1
 
@@ -44,7 +45,7 @@ def watcher() -> CoverageWatcher:
 def prompt_changed(settings, context) -> None:
     """The prompt's update callback (every keystroke): ask for its coverage and redraw when it arrives."""
     text = settings.prompt.strip()
-    if not text or bpy.app.background:  # no one is typing: scripts ask the pipeline themselves
+    if not text or bpy.app.background or missing_modules():  # no one is typing: scripts ask the pipeline themselves
         return
     watcher().request(text, _model_key(context))
     if not bpy.app.timers.is_registered(_poll):
@@ -61,7 +62,7 @@ def _poll():
 def draw_coverage(layout, settings, context) -> None:
     """The verdict line under the prompt field (nothing while it is being checked or when unavailable)."""
     text = settings.prompt.strip()
-    if not text:
+    if not text or missing_modules():  # no PyTorch yet: the panel says how to get it
         return
     key = _model_key(context)
     cov = watcher().result(text, key)
