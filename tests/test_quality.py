@@ -160,6 +160,10 @@ def test_bundled_model_coverage_verdicts(bundled_index, minilm):
                                   "a person sits down on a chair with the left leg first"], minilm)
     assert [c.verdict for c in styled] == ["known", "unknown", "unknown"]
     assert styled[1].score == pytest.approx(found[2].score, abs=1e-6)
+    # the prompts that pass 0 of 4 physical checks on the default model
+    beyond = ["sits down on a chair", "crouches down low", "lies down on the floor", "climbs up a ladder",
+              "does a cartwheel", "jumps up and down in place"]
+    assert [c.verdict for c in bundled_index.query(beyond, minilm)] == ["unknown"] * 6
 
 
 def test_bundled_index_is_small():
