@@ -80,6 +80,14 @@ def bone_map_of(obj):
     return stored_map(obj) or detected_map(obj).bone_map
 
 
+def not_editable(obj) -> str:
+    """'' if keys can be written onto ``obj`` and saved with the file, else why not (linked from a library)."""
+    if getattr(obj, "library", None) is not None:
+        return (f"{obj.name!r} is linked from {obj.library.filepath!r} and cannot take new keys: make it local or "
+                "add a library override (Object > Library Override > Make), then generate onto that")
+    return ""
+
+
 def check_target(obj) -> str:
     """'' if ``obj`` can take generated motion, else a sentence saying why not (cheap: detection is cached)."""
     if obj is None:
@@ -88,6 +96,9 @@ def check_target(obj) -> str:
         return f"{obj.name!r} is not an armature"
     if len(obj.data.bones) == 0:
         return f"{obj.name!r} has no bones"
+    locked = not_editable(obj)
+    if locked:
+        return locked
     if rig.is_canonical(obj):
         return ""
     return map_problem(bone_map_of(obj), obj.data.bones.keys(), obj.name)

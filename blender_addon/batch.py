@@ -37,7 +37,6 @@ import importlib
 import json
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -57,6 +56,11 @@ def _addon_package():
     if parent not in sys.path:
         sys.path.insert(0, parent)
     return importlib.import_module(here.name)
+
+
+_addon_package()  # puts mld_core (the vendored copy or the checkout) on sys.path
+from mld_core import inputs  # noqa: E402
+from mld_core.fileio import OutputSet  # noqa: E402
 
 
 def script_argv(argv=None) -> list[str]:
@@ -133,8 +137,8 @@ def retarget_inputs(args, addon):
         path = Path(args.bvh_rig)
         if not path.is_file():
             raise BatchError(f"BVH rig not found: {path}")
-        if not args.bvh_scale > 0:
-            raise BatchError(f"--bvh-scale must be positive, got {args.bvh_scale:g}")
+        inputs.number_in_range(args.bvh_scale, "--bvh-scale", 1e-4, 1e4)
+        _check_bvh_file(path)
     bone_map = None
     if args.bone_map:
         path = Path(args.bone_map)
@@ -145,6 +149,22 @@ def retarget_inputs(args, addon):
         except (bone_maps.BoneMapError, OSError, UnicodeDecodeError, TypeError, ValueError, AttributeError) as exc:
             raise BatchError(f"--bone-map {path}: {exc}") from None
     return settings, bone_map
+
+
+def _check_bvh_file(path: Path) -> None:
+    """Read the BVH with mld_core's parser first, so a broken file is one clear line, not Blender's traceback."""
+    from mld_core.motion.bvh import BVHError, read_bvh
+
+    try:
+        read_bvh(path)
+    except (BVHError, OSError, UnicodeDecodeError, ValueError) as exc:
+        raise BatchError(f"--bvh-rig {path} is not a usable BVH file: {str(exc).splitlines()[0]}") from None
+
+
+def headless(problem: str) -> str:
+    """A bone-map problem worded for the command line (the panel's advice names its buttons)."""
+    return problem.replace(". Pick the bones in the Retarget panel (or press Detect)",
+                           ": give a --bone-map file (the panel's Save Map... writes one)")
 
 
 def _append_rig(path: Path, name: str | None):
@@ -165,6 +185,8 @@ def _append_rig(path: Path, name: str | None):
                 f"{path} has no armature named {name!r}; armatures: {', '.join(o.name for o in armatures) or 'none'}"
             )
         return found[0]
+    if not armatures:
+        raise BatchError(f"{path} has no armature object to key")
     if len(armatures) != 1:
         listed = ", ".join(o.name for o in armatures) or "none"
         raise BatchError(f"{path} has {len(armatures)} armatures ({listed}): name one with --rig-object")
@@ -193,7 +215,7 @@ def _import_bvh_rig(path: Path, scale: float):
     return obj
 
 
-def output_paths(args, takes_names=()) -> dict:
+def output_paths(args) -> dict:
     out = Path(args.out)
     paths = {"blend": out, "manifest": Path(args.manifest) if args.manifest else out.with_suffix(".json")}
     if args.preview:
@@ -201,40 +223,30 @@ def output_paths(args, takes_names=()) -> dict:
     return paths
 
 
-def check_outputs(paths: dict, overwrite: bool) -> None:
+OPTION = {"blend": "--out", "manifest": "--manifest", "preview": "--preview"}
+
+
+def check_outputs(args, paths: dict) -> None:
+    """Every output: a file name of the right kind, none equal to an input or another output, none existing
+    without --overwrite (checked again when the outputs are put in place)."""
     if not str(paths["blend"]).endswith(".blend"):
         raise BatchError(f"--out must name a .blend file, got {paths['blend']}")
-    for kind, path in paths.items():
-        if path.exists() and not overwrite:
-            raise BatchError(f"{path} exists; pass --overwrite to replace it")
-        if path.exists() and path.is_dir():
-            raise BatchError(f"{path} is a folder")
+    sources = {"--prompts": args.prompts, "--rig": args.rig, "--bvh-rig": args.bvh_rig, "--bone-map": args.bone_map}
+    inputs.check_outputs({OPTION[k]: p for k, p in paths.items()},
+                         {k: Path(v) for k, v in sources.items() if v}, overwrite=args.overwrite)
 
 
-def _atomic_text(path: Path, text: str) -> None:
-    from mld_core.fileio import atomic_write
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
-
-
-def save_blend_atomic(path: Path) -> None:
-    """Save a copy of the session to ``path`` via a temporary file in the same folder."""
+def save_blend_copy(tmp: str) -> None:
+    """Save a copy of the session into ``tmp`` (an OutputSet's temporary file)."""
     import bpy
 
-    path = Path(path).resolve()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".blend")
-    os.close(fd)
     try:
         result = bpy.ops.wm.save_as_mainfile(filepath=tmp, copy=True, check_existing=False)
         if "FINISHED" not in result:
             raise RuntimeError(f"Blender could not save {tmp}")
-        os.replace(tmp, path)
     finally:
-        for leftover in (tmp, tmp + "1"):
-            if os.path.exists(leftover):
-                os.unlink(leftover)
+        if os.path.exists(tmp + "1"):  # Blender's backup of the (empty) temporary file
+            os.unlink(tmp + "1")
 
 
 def write_bvh(path: Path, take) -> None:
@@ -242,7 +254,6 @@ def write_bvh(path: Path, take) -> None:
     import numpy as np
     from mld_core.motion import bvh, skeleton
 
-    path.parent.mkdir(parents=True, exist_ok=True)
     bvh.write_bvh(
         path,
         list(skeleton.JOINT_NAMES),
@@ -266,9 +277,7 @@ def _prepare_scene(args, addon):
     scene = bpy.context.scene
     if args.fps:
         fps = float(args.fps)
-        if not 1 <= fps <= 1000:
-            raise BatchError(f"--fps must be between 1 and 1000, got {fps:g}")
-        scene.render.fps, scene.render.fps_base = max(1, round(fps)), round(fps) / fps if fps else 1.0
+        scene.render.fps, scene.render.fps_base = max(1, round(fps)), round(fps) / fps
     rig = importlib.import_module(addon.__name__ + ".rig")
     apply = importlib.import_module(addon.__name__ + ".apply")
     if args.rig:
@@ -293,21 +302,21 @@ def check_rig(obj, bone_map, addon) -> str:
     rig = importlib.import_module(addon.__name__ + ".rig")
     wiring = importlib.import_module(addon.__name__ + ".retarget_wiring")
     if bone_map is not None:
-        problem = wiring.map_problem(bone_map, obj.data.bones.keys(), obj.name)
+        problem = apply.not_editable(obj) or wiring.map_problem(bone_map, obj.data.bones.keys(), obj.name)
         if problem:
             raise BatchError(problem.replace(". Pick the bones in the Retarget panel (or press Detect)",
                                              " (fix the --bone-map file)"))
         return bone_map.source
     problem = apply.check_target(obj)
     if problem:
-        raise BatchError(problem)
+        raise BatchError(headless(problem))
     return "canonical" if rig.is_canonical(obj) else apply.bone_map_of(obj).source
 
 
 def run(args) -> int:
     addon = _addon_package()
     from_pkg = lambda name: importlib.import_module(f"{addon.__name__}.{name}")  # noqa: E731
-    batchfile, validation, env = from_pkg("batchfile"), from_pkg("validation"), from_pkg("env")
+    batchfile, env = from_pkg("batchfile"), from_pkg("env")
 
     t_start = time.perf_counter()
     # 1. Inputs, all checked before any work.
@@ -329,11 +338,13 @@ def run(args) -> int:
         device=args.device,
         threads=args.threads,
     )
+    inputs.check_fps(args.fps, "--fps")
+    inputs.number_in_range(args.tolerance, "--tolerance", 0, 180)
     paths = output_paths(args)
-    check_outputs(paths, args.overwrite)
+    check_outputs(args, paths)
     bvh_dir = Path(args.bvh_dir) if args.bvh_dir else None
-    if bvh_dir is not None and bvh_dir.exists() and not bvh_dir.is_dir():
-        raise BatchError(f"--bvh-dir {bvh_dir} is not a folder")
+    if bvh_dir is not None:
+        inputs.check_output_folder(bvh_dir, "--bvh-dir")
     missing = env.missing_modules()
     if missing:
         raise BatchError(env.dependency_message(missing))
@@ -351,7 +362,7 @@ def run(args) -> int:
     load_s = time.perf_counter() - t0
     print(f"model {getattr(pipe, 'model_id', '?')} loaded in {load_s:.2f} s")
     min_s, max_s = getattr(pipe, "min_seconds", None), getattr(pipe, "max_seconds", None)
-    records = []
+    records, bvh_takes = [], []
     first_frames = 0
     for index, (line, request) in enumerate(zip(lines, requests)):
         if min_s is not None and not (min_s - 1e-6 <= request.seconds <= max_s + 1e-6):
@@ -378,9 +389,8 @@ def run(args) -> int:
         )
         if bvh_dir is not None:
             bvh_path = bvh_dir / f"{take.name}.bvh"
-            if bvh_path.exists() and not args.overwrite:
-                raise BatchError(f"{bvh_path} exists; pass --overwrite to replace it")
-            write_bvh(bvh_path, take)
+            inputs.check_outputs({"--bvh-dir file": bvh_path}, overwrite=args.overwrite)
+            bvh_takes.append((bvh_path, take))
             record["bvh"] = str(bvh_path)
         records.append(record)
         if index == 0:
@@ -388,9 +398,30 @@ def run(args) -> int:
         print(f"[{index + 1}/{len(requests)}] {take.name}: {take.frames} frames ({request.seconds:g} s) in {record['time_s']:.2f} s")
     scene.frame_end = scene.frame_start + max(first_frames, 1) - 1
 
-    # 4. Outputs: the .blend, the manifest, the preview.
-    save_blend_atomic(paths["blend"])
-    manifest = {
+    # 4. Outputs: the .blend, the manifest, the preview, the BVHs: staged, then put in place together.
+    with OutputSet(overwrite=args.overwrite) as outputs:
+        outputs.stage(paths["blend"], save_blend_copy, suffix=".blend")
+        for bvh_path, take in bvh_takes:
+            outputs.stage(bvh_path, lambda tmp, take=take: write_bvh(Path(tmp), take), suffix=".bvh")
+        manifest = _manifest(args, paths, obj, map_source, pipe, model_dir, retarget, scene, records, env, apply,
+                             load_s, t_start)
+        if "preview" in paths:
+            preview = from_pkg("preview")
+            t0 = time.perf_counter()
+            outputs.stage(paths["preview"], lambda tmp: preview.render_preview(scene, obj, tmp), suffix=".png")
+            manifest["preview"] = str(paths["preview"])
+            manifest["timing"]["preview_s"] = round(time.perf_counter() - t0, 4)
+            print(f"preview {paths['preview']} in {manifest['timing']['preview_s']:.2f} s")
+        manifest["timing"]["total_s"] = round(time.perf_counter() - t_start, 4)
+        text = json.dumps(manifest, indent=2) + "\n"
+        outputs.stage(paths["manifest"], lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
+    print(f"wrote {paths['blend']} ({len(records)} take{'s' if len(records) != 1 else ''}) and {paths['manifest']}")
+    return EXIT_OK
+
+
+def _manifest(args, paths, obj, map_source, pipe, model_dir, retarget, scene, records, env, apply, load_s,
+              t_start) -> dict:
+    return {
         "format": "mld-takes",
         "version": 1,
         "blend": str(paths["blend"]),
@@ -414,17 +445,6 @@ def run(args) -> int:
         "timing": {"load_s": round(load_s, 4), "total_s": round(time.perf_counter() - t_start, 4)},
         "takes": records,
     }
-    if "preview" in paths:
-        preview = from_pkg("preview")
-        t0 = time.perf_counter()
-        preview.render_preview(scene, obj, paths["preview"])
-        manifest["preview"] = str(paths["preview"])
-        manifest["timing"]["preview_s"] = round(time.perf_counter() - t0, 4)
-        print(f"preview {paths['preview']} in {manifest['timing']['preview_s']:.2f} s")
-    manifest["timing"]["total_s"] = round(time.perf_counter() - t_start, 4)
-    _atomic_text(paths["manifest"], json.dumps(manifest, indent=2) + "\n")
-    print(f"wrote {paths['blend']} ({len(records)} take{'s' if len(records) != 1 else ''}) and {paths['manifest']}")
-    return EXIT_OK
 
 
 def main(argv=None) -> int:
@@ -434,7 +454,7 @@ def main(argv=None) -> int:
     except SystemExit as exc:  # argparse already printed the problem
         return EXIT_USAGE if exc.code else EXIT_OK
     addon = _addon_package()
-    user_errors = (BatchError, importlib.import_module(addon.__name__ + ".batchfile").BatchFileError)
+    user_errors = (BatchError, inputs.InputError, FileExistsError)
     try:
         return run(args)
     except user_errors as exc:

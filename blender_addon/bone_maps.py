@@ -105,12 +105,10 @@ class BoneMap:
 
     def save(self, path: str | os.PathLike) -> None:
         """Write as JSON (to a temporary file first, then renamed: an existing file is never half-written)."""
-        path = os.fspath(path)
-        tmp = f"{path}.tmp"
-        with open(tmp, "w", encoding="utf-8") as fh:
-            json.dump(self.to_dict(), fh, indent=2)
-            fh.write("\n")
-        os.replace(tmp, path)
+        from mld_core.fileio import atomic_write
+
+        text = json.dumps(self.to_dict(), indent=2) + "\n"
+        atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "BoneMap":

@@ -8,7 +8,9 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, Po
 from . import quality_ui
 from .retarget_wiring import DEFAULT_TOLERANCE_DEG, ROTATION_CHOICES
 
-from .validation import DEFAULT_MAX_SECONDS, DEFAULT_MIN_SECONDS, MAX_STEPS, MAX_VARIANTS, SEED_MAX
+from .validation import MAX_STEPS, MAX_VARIANTS, SEED_MAX, model_limits
+
+_LIMITS = model_limits()  # the bundled model's lengths (config.json only); another model's are checked on Generate
 
 
 def _is_armature(self, obj):
@@ -25,10 +27,11 @@ class MLD_SceneSettings(bpy.types.PropertyGroup):
     )
     seconds: FloatProperty(
         name="Seconds",
-        description="Length of the motion (the model makes 1 to 9.8 seconds at 20 fps)",
+        description=f"Length of the motion (the model makes {_LIMITS.min_seconds:g} to {_LIMITS.max_seconds:g} "
+        f"seconds at {_LIMITS.fps} fps)",
         default=4.0,
-        min=DEFAULT_MIN_SECONDS,
-        max=DEFAULT_MAX_SECONDS,
+        min=_LIMITS.min_seconds,
+        max=_LIMITS.max_seconds,
         step=50,
         precision=2,
         unit="TIME_ABSOLUTE",

@@ -118,11 +118,37 @@ def load_config(model_dir: Path) -> ModelConfig:
         raise CheckpointError(f"missing {path} (not a model folder?)")
     try:
         data = json.loads(path.read_text())
+        if not isinstance(data, dict):
+            raise ValueError(f"expected a JSON object, got a {type(data).__name__}")
         if data.get("format") != FORMAT:
             raise ValueError(f"format is {data.get('format')!r}, expected {FORMAT!r}")
-        return ModelConfig.from_dict(data)
-    except (ValueError, TypeError, KeyError) as exc:
+        for name in ("vae", "denoiser", "scheduler", "text_encoder"):
+            if data.get(name) is not None and not isinstance(data[name], dict):
+                raise ValueError(f"{name} must be an object, got {data[name]!r}")
+        config = ModelConfig.from_dict(data)
+        check_config(config)
+        return config
+    except (ValueError, TypeError, KeyError, AttributeError, OSError, UnicodeDecodeError) as exc:
         raise CheckpointError(f"corrupt {path}: {exc}") from None
+
+
+def check_config(config: ModelConfig) -> None:
+    """Values a model cannot run with: non-positive or non-integer lengths and fps, non-finite or zero stats."""
+    for name in ("fps", "min_frames", "max_frames", "num_inference_steps"):
+        value = getattr(config, name)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be a positive whole number, got {value!r}")
+    if config.min_frames > config.max_frames:
+        raise ValueError(f"min_frames ({config.min_frames}) is above max_frames ({config.max_frames})")
+    for name in ("guidance_scale", "latent_scale", "latent_mean"):
+        value = getattr(config, name)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+            raise ValueError(f"{name} must be a finite number, got {value!r}")
+    mean, std = (np.asarray(v, np.float64) for v in (config.mean, config.std))
+    if not (np.isfinite(mean).all() and np.isfinite(std).all()):
+        raise ValueError("mean/std hold non-finite values (NaN or inf)")
+    if (std <= 0).any():
+        raise ValueError("std must be positive")
 
 
 def save_model(model_dir: Path, config: ModelConfig, vae: torch.nn.Module, denoiser: torch.nn.Module | None = None,

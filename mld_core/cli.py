@@ -13,6 +13,8 @@ import argparse
 import importlib
 import sys
 
+from mld_core.inputs import InputError, check_seed, check_threads
+
 # Shared by generate, evaluate and bench (names here so that building the parser needs no torch).
 PRECISION_CHOICES = ("fp32", "bf16")
 PRECISION_HELP = ("denoiser precision: fp32 (default) or bf16 (faster on CPUs with AVX512-BF16 or AMX; samples "
@@ -31,6 +33,14 @@ COMMAND_MODULES = (
 
 class UsageError(Exception):
     """A problem with the user's input: printed as one message, exit code 2."""
+
+
+def check_common_options(args) -> None:
+    """Options several commands share, checked by one rule before any command runs."""
+    if getattr(args, "threads", None) is not None:
+        check_threads(args.threads, "--threads")
+    if isinstance(getattr(args, "seed", None), int):
+        check_seed(args.seed, what="--seed")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -58,8 +68,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
+        check_common_options(args)
         return int(func(args) or 0)
-    except UsageError as exc:
+    except (UsageError, InputError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

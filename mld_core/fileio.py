@@ -1,4 +1,5 @@
-"""Writing files so that a reader never sees half of one: a temporary file in the same folder, then a rename."""
+"""Writing files so that a reader never sees half of one: a temporary file in the same folder, then a rename
+(one file: :func:`atomic_write`; several that must appear together or not at all: :class:`OutputSet`)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,8 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None], suffix: 
     then rename it onto ``path``. On any error the temporary file is removed and ``path`` is left untouched.
     ``suffix`` names the temporary file for writers that pick a format from the name."""
     path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{path} is a folder; name a file")
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
     os.close(fd)
     try:
@@ -29,3 +32,93 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None], suffix: 
         if os.path.exists(tmp):
             os.unlink(tmp)
     return path
+
+
+class OutputSet:
+    """Several outputs written beside their targets under temporary names, then put in place all together or not
+    at all. Without ``overwrite`` each target is claimed exclusively at commit time (a hard link, which fails if the
+    name exists), so of two runs racing for one path only one wins and the other leaves nothing behind.
+
+        with OutputSet(overwrite=False) as outputs:
+            outputs.stage(npz_path, write_npz)
+            outputs.stage(bvh_path, write_bvh)
+        # leaving the block without an error commits; an error discards every staged file
+    """
+
+    def __init__(self, overwrite: bool = False):
+        self.overwrite = overwrite
+        self._staged: list[tuple[str, Path]] = []
+        self._made_dirs: list[Path] = []
+
+    def stage(self, path: str | os.PathLike, write: Callable[[str], None], suffix: str = ".tmp") -> Path:
+        """Call ``write(tmp_path)`` now; the file takes the name ``path`` at :meth:`commit`."""
+        path = Path(path)
+        self._make_parent(path.parent)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
+        os.close(fd)
+        self._staged.append((tmp, path))
+        write(tmp)
+        os.chmod(tmp, 0o666 & ~_umask())
+        return path
+
+    def commit(self) -> list[Path]:
+        placed: list[Path] = []
+        try:
+            for tmp, path in self._staged:
+                if self.overwrite:
+                    os.replace(tmp, path)
+                else:
+                    _claim(tmp, path)
+                placed.append(path)
+        except BaseException:
+            for path in placed:
+                if not self.overwrite:
+                    path.unlink(missing_ok=True)
+            self.discard()
+            raise
+        self._staged.clear()
+        return placed
+
+    def discard(self) -> None:
+        for tmp, _ in self._staged:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+        self._staged.clear()
+        for folder in reversed(self._made_dirs):
+            try:
+                folder.rmdir()
+            except OSError:
+                pass
+        self._made_dirs.clear()
+
+    def _make_parent(self, folder: Path) -> None:
+        missing = []
+        while not folder.exists():
+            missing.append(folder)
+            folder = folder.parent
+        for f in reversed(missing):
+            f.mkdir()
+            self._made_dirs.append(f)
+
+    def __enter__(self) -> "OutputSet":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.commit()
+        else:
+            self.discard()
+
+
+def _claim(tmp: str, path: Path) -> None:
+    """Give ``tmp`` the name ``path`` only if no file has it (FileExistsError otherwise), then drop ``tmp``."""
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise FileExistsError(f"{path} exists (written by another run?); pass --overwrite to replace it") from None
+    except OSError:  # no hard links here: claim the name with an exclusive create, then move the file onto it
+        fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        os.close(fd)
+        os.replace(tmp, path)
+        return
+    os.unlink(tmp)

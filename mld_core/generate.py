@@ -3,62 +3,25 @@
 from __future__ import annotations
 
 import json
-import re
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from mld_core.fileio import atomic_write
-
-_FRAMES_LINE = re.compile(r"^\s*(\d+)\s+(.*\S)\s*$")
-
-
-@dataclass
-class PromptLine:
-    text: str
-    seconds: float | None  # None: use --seconds
-    line: int
+from mld_core import inputs
+from mld_core.fileio import OutputSet
+from mld_core.inputs import InputError, PromptLine
 
 
-def parse_prompt_lines(text: str, fps: int = 20, source: str = "prompts") -> list[PromptLine]:
-    """One prompt per line; MLD's ``<frames> <text>`` lines set the length. Blank lines and ``#`` comments skip."""
-    prompts = []
-    for number, raw in enumerate(text.splitlines(), start=1):
-        line = raw.strip()
-        if not line or line.startswith("#"):
-            continue
-        if "\x00" in line:
-            raise ValueError(f"{source}, line {number}: not text")
-        match = _FRAMES_LINE.match(line)
-        if match:
-            frames = int(match.group(1))
-            if frames <= 0:
-                raise ValueError(f"{source}, line {number}: frame count must be positive")
-            prompts.append(PromptLine(match.group(2), frames / fps, number))
-        else:
-            prompts.append(PromptLine(line, None, number))
-    if not prompts:
-        raise ValueError(f"{source}: no prompts (one per line, optionally '<frames> <text>')")
-    return prompts
+
+def read_prompt_file(path: Path) -> list[PromptLine]:
+    """The prompt file's lines (mld_core.inputs: the same format and messages as the batch)."""
+    return inputs.read_prompt_file(path)
 
 
-def read_prompt_file(path: Path, fps: int = 20) -> list[PromptLine]:
-    try:
-        data = Path(path).read_bytes()
-    except OSError as exc:
-        raise ValueError(f"cannot read prompt file {path}: {exc.strerror or exc}") from None
-    for number, raw in enumerate(data.split(b"\n"), start=1):
-        try:
-            raw.decode("utf-8")
-        except UnicodeDecodeError:
-            raise ValueError(f"{path}, line {number}: not UTF-8 text") from None
-    return parse_prompt_lines(data.decode("utf-8"), fps, str(path))
-
-
-def write_npz(path: Path, out, records: list | None = None) -> None:
-    """``records``: per row a JSON-able dict (coverage, badges), stored as one JSON string ``quality``."""
+def write_npz(path: Path, out, records: list | None = None, outputs: OutputSet | None = None) -> None:
+    """``records``: per row a JSON-able dict (coverage, badges), stored as one JSON string ``quality``. Staged in
+    ``outputs`` when given (committed with the other outputs), else written on its own."""
     extra = {"quality": np.array(json.dumps(records))} if records and any(records) else {}
 
     def save(tmp):
@@ -67,8 +30,11 @@ def write_npz(path: Path, out, records: list | None = None) -> None:
                      lengths=np.asarray(out.lengths, np.int64), fps=np.int64(out.fps), prompts=np.array(out.prompts),
                      seeds=np.asarray(out.seeds, np.int64), model_id=np.array(out.model_id), **extra)
 
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(path, save)
+    if outputs is not None:
+        outputs.stage(path, save)
+        return
+    with OutputSet(overwrite=True) as single:
+        single.stage(path, save)
 
 
 def bvh_paths(path: Path, n: int) -> list[Path]:
@@ -78,8 +44,8 @@ def bvh_paths(path: Path, n: int) -> list[Path]:
     return [path.with_name(f"{path.stem}_{i:03d}{path.suffix or '.bvh'}") for i in range(n)]
 
 
-def write_bvhs(path: Path, out, fps: int) -> list[Path]:
-    """The canonical skeleton with its rotations, one file per generated row."""
+def write_bvhs(path: Path, out, fps: int, outputs: OutputSet) -> list[Path]:
+    """The canonical skeleton with its rotations, one file per generated row, staged in ``outputs``."""
     from mld_core.motion import skeleton
     from mld_core.motion.bvh import write_bvh
     from mld_core.motion.quaternion import resample_quaternions
@@ -91,91 +57,127 @@ def write_bvhs(path: Path, out, fps: int) -> list[Path]:
         quats, root = features_to_rotations(out.features[i, :n])
         if fps != out.fps:
             quats, root = resample_quaternions(quats, root, out.fps, fps)
-        atomic_write(p, lambda tmp: write_bvh(tmp, list(skeleton.JOINT_NAMES), list(skeleton.PARENTS),
+        outputs.stage(p, lambda tmp: write_bvh(tmp, list(skeleton.JOINT_NAMES), list(skeleton.PARENTS),
                                               np.asarray(skeleton.REST_OFFSETS), root, quats, 1.0 / fps))
     return paths
 
 
-def run(args) -> int:
-    from mld_core import take_report
+def _prompt_lines(args) -> list[PromptLine]:
+    if args.prompt is not None and args.prompts is not None:
+        raise InputError("give a PROMPT or --prompts FILE, not both")
+    if args.prompts is not None:
+        return read_prompt_file(args.prompts)
+    if (args.unconditional or args.action) and not (args.prompt or "").strip():
+        return [PromptLine(0, "", None)]
+    if args.prompt is None or not args.prompt.strip():
+        raise InputError("empty prompt: type what the motion should be, or pass --unconditional")
+    return [PromptLine(0, inputs.check_prompt(args.prompt), None)]
+
+
+def _checked_args(args) -> tuple[list[PromptLine], list[float], dict]:
+    """Every input checked before the model loads or anything is written: (lines, seconds per line, outputs)."""
+    inputs.check_threads(args.threads, "--threads")
+    lines = _prompt_lines(args)
+    variants = inputs.int_in_range(args.variants, "--variants", 1, 64)
+    if args.best is not None:
+        inputs.int_in_range(args.best, "--best", 1, variants)
+    inputs.check_seed(args.seed, len(lines) * variants, "--seed")
+    if args.steps is not None:
+        inputs.check_steps(args.steps, "--steps")
+    inputs.check_guidance(args.guidance, "--guidance")
+    inputs.check_fps(args.fps, "--fps")
+    default = inputs.finite_number(args.seconds, "--seconds")
+    limits = inputs.model_limits(args.model)
+    seconds = []
+    for line in lines:
+        what = f"line {line.line}: length" if line.line else "--seconds"
+        seconds.append(inputs.check_seconds(line.seconds(default), limits, what))
+    rows = len(lines) * (args.best or variants)
+    outputs = {"--out": args.out}
+    if args.bvh is not None:
+        outputs.update({f"--bvh ({p.name})": p for p in bvh_paths(args.bvh, rows)})
+    inputs.check_outputs(outputs, {"--prompts": args.prompts}, overwrite=args.overwrite)
+    return lines, seconds, outputs
+
+
+def _load(args):
     from mld_core.checkpoint import CheckpointError
-    from mld_core.cli import UsageError
     from mld_core.pipeline import MLDPipeline
 
+    try:
+        return MLDPipeline.from_pretrained(args.model, precision=args.precision)
+    except CheckpointError as exc:
+        raise InputError(str(exc)) from None
+    except ImportError as exc:
+        raise InputError(f"missing dependency: {exc}") from None
+
+
+def _warn_long_prompts(encoder, lines) -> None:
+    for line in lines:
+        count = len(encoder.tokenizer.tokenize_ids(line.text)) + 2  # [CLS] ... [SEP]
+        if count > encoder.max_tokens:
+            print(f"warning: prompt{f' on line {line.line}' if line.line else ''} has {count} tokens; "
+                  f"only the first {encoder.max_tokens} are used", file=sys.stderr)
+
+
+def run(args) -> int:
+    from mld_core import take_report
+    from mld_core.cli import UsageError
+
+    try:
+        return _run(args, take_report)
+    except (ValueError, take_report.BeyondModel) as exc:  # InputError is a ValueError
+        raise UsageError(str(exc)) from None
+    except FileExistsError as exc:  # another run took an output name between our check and our rename
+        raise UsageError(str(exc)) from None
+    except OSError as exc:  # a folder we may not write to, a full disk: nothing was put in place
+        raise UsageError(f"cannot write {exc.filename or 'the outputs'}: {exc.strerror or exc}") from None
+
+
+def _run(args, take_report) -> int:
+    # 1. Inputs and output paths, all checked before any work.
+    lines, seconds, _ = _checked_args(args)
     if args.threads:
         import torch
 
         torch.set_num_threads(args.threads)
-    if args.prompt is not None and args.prompts is not None:
-        raise UsageError("give a PROMPT or --prompts FILE, not both")
-    try:
-        if args.prompts is not None:
-            lines = read_prompt_file(args.prompts)
-        elif args.unconditional or args.action:
-            lines = [PromptLine(args.prompt or "", None, 0)]
-        else:
-            if args.prompt is None or not args.prompt.strip():
-                raise ValueError("empty prompt: type what the motion should be, or pass --unconditional")
-            lines = [PromptLine(args.prompt.strip(), None, 0)]
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
-    if args.variants < 1 or args.variants > 64:
-        raise UsageError("--variants must be between 1 and 64")
-    if args.steps is not None and not 1 <= args.steps <= 1000:
-        raise UsageError("--steps must be between 1 and 1000")
-    try:
-        pipe = MLDPipeline.from_pretrained(args.model, precision=args.precision)
-    except CheckpointError as exc:
-        raise UsageError(str(exc)) from None
-    except ImportError as exc:
-        raise UsageError(f"missing dependency: {exc}") from None
-    seconds = [line.seconds if line.seconds is not None else args.seconds for line in lines]
-    for line, s in zip(lines, seconds):
-        if not (pipe.min_seconds <= s <= pipe.max_seconds):
-            where = f"line {line.line}: " if line.line else ""
-            raise UsageError(f"{where}seconds must be between {pipe.min_seconds:g} and {pipe.max_seconds:g} "
-                             f"for this model, got {s:g}")
-    prompts = [line.text for line in lines]
+    # 2. The model, and what it can be asked.
+    pipe = _load(args)
     cond = pipe.denoiser.config.cond if pipe.denoiser is not None else "none"
-    encoder = pipe.text_encoder
-    if cond == "text" and hasattr(encoder, "tokenizer"):
-        for line in lines:
-            count = len(encoder.tokenizer.tokenize_ids(line.text)) + 2  # [CLS] ... [SEP]
-            if count > encoder.max_tokens:
-                print(f"warning: prompt{f' on line {line.line}' if line.line else ''} has {count} tokens; "
-                      f"only the first {encoder.max_tokens} are used", file=sys.stderr)
-    if args.best is not None and not 1 <= args.best <= args.variants:
-        raise UsageError(f"--best must be between 1 and --variants ({args.variants})")
+    if args.action and cond != "action":
+        raise InputError(f"--action needs an action-conditioned model; this model is conditioned on {cond}: "
+                         "give a PROMPT instead")
+    prompts = [line.text for line in lines]
     coverages = None
-    if cond == "text" and not args.unconditional:  # say so when a prompt is beyond the model (--strict: refuse)
-        try:
-            coverages = take_report.check_prompts(pipe, prompts, strict=args.strict,
-                                                  warn=lambda line: print(line, file=sys.stderr))
-        except take_report.BeyondModel as exc:
-            raise UsageError(str(exc)) from None
+    if cond == "text" and not args.unconditional:
+        if hasattr(pipe.text_encoder, "tokenizer"):
+            _warn_long_prompts(pipe.text_encoder, lines)
+        coverages = take_report.check_prompts(pipe, prompts, strict=args.strict,
+                                              warn=lambda line: print(line, file=sys.stderr))
     if args.unconditional and cond == "text":
         prompts = [""] * len(prompts)
-    kwargs = dict(seconds=seconds, num_inference_steps=args.steps, guidance_scale=args.guidance, seed=args.seed,
+    # 3. Generate: line i, variant v uses seed + i * variants + v (the batch's rule with one variant per line).
+    seeds = [args.seed + i * args.variants for i in range(len(lines))]
+    kwargs = dict(seconds=seconds, num_inference_steps=args.steps, guidance_scale=args.guidance, seed=seeds,
                   num_variants=args.variants, rank=args.best is not None)
-    try:
-        if cond == "action":
-            actions = [args.action] * len(prompts) if args.action else prompts
-            out = pipe(prompts, actions=actions, **kwargs)
-        elif args.unconditional:
-            out = pipe(prompts, unconditional=True, **kwargs)
-        else:
-            out = pipe(prompts, **kwargs)
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
+    if cond == "action":
+        actions = [args.action] * len(prompts) if args.action else prompts
+        out = pipe(prompts, actions=actions, **kwargs)
+    elif args.unconditional:
+        out = pipe(prompts, unconditional=True, **kwargs)
+    else:
+        out = pipe(prompts, **kwargs)
     out = take_report.keep_best(out, args.variants, args.best)
     if out.badges is not None:
         print(take_report.badge_table(out))
-    write_npz(args.out, out, take_report.records_for(out, coverages))
+    # 4. Outputs: written beside their targets, then renamed together (all or none).
+    with OutputSet(overwrite=args.overwrite) as outputs:
+        write_npz(args.out, out, take_report.records_for(out, coverages), outputs)
+        bvhs = write_bvhs(args.bvh, out, int(args.fps or out.fps), outputs) if args.bvh is not None else []
     print(f"wrote {args.out}: {len(out.lengths)} motion(s), {int(out.lengths.max())} frames max at {out.fps} fps, "
           f"{out.timings.get('total_s', 0):.2f} s")
-    if args.bvh is not None:
-        for p in write_bvhs(args.bvh, out, args.fps or out.fps):
-            print(f"wrote {p}")
+    for p in bvhs:
+        print(f"wrote {p}")
     return 0
 
 
@@ -186,7 +188,8 @@ def register(groups) -> None:
     p.add_argument("prompt", nargs="?", default=None, help="what the motion should be")
     p.add_argument("--prompts", type=Path, default=None, help="a file with one prompt per line ('<frames> <text>' too)")
     p.add_argument("--seconds", type=float, default=4.0)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the first take: line i, variant v of a prompt file uses seed + i * variants + v")
     p.add_argument("--steps", type=int, default=None, help="DDIM steps (default: the model's, 50)")
     p.add_argument("--guidance", type=float, default=None, help="classifier-free guidance scale (default: the model's)")
     p.add_argument("--variants", type=int, default=1, help="motions per prompt (seeds seed, seed+1, ...)")
@@ -201,6 +204,7 @@ def register(groups) -> None:
     p.add_argument("--out", type=Path, required=True, help="OUT.npz")
     p.add_argument("--bvh", type=Path, default=None, help="also write BVH (one file per motion)")
     p.add_argument("--fps", type=int, default=None, help="BVH frame rate (default 20)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     p.add_argument("--precision", choices=PRECISION_CHOICES, default="fp32", help=PRECISION_HELP)
     p.set_defaults(func=run)

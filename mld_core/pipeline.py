@@ -19,6 +19,8 @@ import numpy as np
 import torch
 
 from mld_core.coverage import load_for_model, unavailable
+from mld_core.inputs import InputError
+from mld_core import inputs
 from mld_core.checkpoint import DEFAULT_MODEL_DIR, CheckpointError, ModelConfig, load_config, load_weights
 from mld_core.models.denoiser import LatentDenoiser
 from mld_core.models.vae import MotionVAE
@@ -46,7 +48,7 @@ class MLDOutput:
 
 
 def _as_list(value, n: int, name: str) -> list:
-    if isinstance(value, (str, int, float)) or value is None:
+    if isinstance(value, (str, int, float, np.integer, np.floating)) or value is None:
         return [value] * n
     value = list(value)
     if len(value) != n:
@@ -93,7 +95,10 @@ class MLDPipeline:
             if config.denoiser.cond == "text" and text_encoder is None:
                 from mld_core.models.text_encoder import load_text_encoder
 
-                text_encoder = load_text_encoder(config.text_encoder)
+                try:
+                    text_encoder = load_text_encoder(config.text_encoder)
+                except (ValueError, TypeError) as exc:
+                    raise CheckpointError(f"{model_dir / 'config.json'}: text_encoder: {exc}") from None
         if len(config.mean) != config.vae.feature_dim or len(config.std) != config.vae.feature_dim:
             raise CheckpointError(f"{model_dir / 'config.json'}: mean/std must have {config.vae.feature_dim} values")
         pipe = cls(config, vae, denoiser, text_encoder, device, precision)
@@ -200,6 +205,8 @@ class MLDPipeline:
         t_start = time.perf_counter()
         cond_kind = "none" if unconditional else self.denoiser.config.cond
         # 1. Inputs: one row per (prompt, variant); each row has its own seed and generator.
+        if prompts is None or not isinstance(prompts, (str, Sequence)):
+            raise InputError(f"prompts must be a string or a list of strings, got {type(prompts).__name__}")
         prompts = [prompts] if isinstance(prompts, str) else list(prompts)
         if actions is not None and isinstance(actions, (str, int)):
             actions = [actions]
@@ -214,14 +221,15 @@ class MLDPipeline:
         actions = _as_list(actions, n_prompts, "actions") if actions is not None else None
         secs = _as_list(seconds, n_prompts, "seconds")
         frames = [self.frames_for(float(s)) for s in secs]
-        steps = int(num_inference_steps or self.config.num_inference_steps)
-        s = float(self.config.guidance_scale if guidance_scale is None else guidance_scale)
-        if num_variants < 1:
-            raise ValueError("num_variants must be >= 1")
+        steps = self.config.num_inference_steps if num_inference_steps is None else num_inference_steps
+        steps = inputs.int_in_range(steps, "num_inference_steps", 1, 1000)
+        s = inputs.finite_number(self.config.guidance_scale if guidance_scale is None else guidance_scale,
+                                 "guidance_scale")
+        num_variants = inputs.int_in_range(num_variants, "num_variants", 1, 1024)
         rows = [(i, v) for i in range(n_prompts) for v in range(num_variants)]
         row_prompts = [prompts[i] for i, _ in rows]
         row_actions = [actions[i] for i, _ in rows] if actions is not None else None
-        base = [int(x) for x in _as_list(int(seed) if isinstance(seed, np.integer) else seed, n_prompts, "seed")]
+        base = [inputs.check_seed(x, num_variants, "seed") for x in _as_list(seed, n_prompts, "seed")]
         seeds = [base[i] + v for i, v in rows]
         lengths = torch.tensor([frames[i] for i, _ in rows], device=self.device)
         B = len(rows)
@@ -293,4 +301,7 @@ class MLDPipeline:
         for i, n in enumerate(lengths):
             joints[i, :n] = features_to_joints(features[i, :n])
             joints[i, n:] = joints[i, n - 1]
+        if not np.isfinite(joints).all():  # never hand a take of NaN/inf joints to a writer
+            raise InputError("the model produced non-finite motion (NaN or inf): check the guidance scale and the "
+                             "model's config.json (mean/std)")
         return joints

@@ -7,7 +7,7 @@ import pytest
 
 from mld_core.checkpoint import DEFAULT_MODEL_DIR
 from mld_core.cli import main
-from mld_core.generate import parse_prompt_lines, read_prompt_file
+from mld_core.inputs import parse_prompt_lines, read_prompt_file
 from mld_core.motion.bvh import read_bvh
 from mld_core.testing import tiny_model
 
@@ -19,11 +19,11 @@ def model(tmp_path_factory):
 
 def test_prompt_lines_accept_mld_frame_prefixes():
     lines = parse_prompt_lines("# takes\n\n60 a person walks\na person waves\n  100   jumps twice  \n")
-    assert [(p.text, p.seconds, p.line) for p in lines] == [
-        ("a person walks", 3.0, 3), ("a person waves", None, 4), ("jumps twice", 5.0, 5)]
+    assert [(p.text, p.seconds(4.0), p.line) for p in lines] == [
+        ("a person walks", 3.0, 3), ("a person waves", 4.0, 4), ("jumps twice", 5.0, 5)]
     with pytest.raises(ValueError, match="no prompts"):
         parse_prompt_lines("\n# only a comment\n")
-    with pytest.raises(ValueError, match="line 2: frame count"):
+    with pytest.raises(ValueError, match="line 2: the length must be a positive whole number"):
         parse_prompt_lines("walk\n0 run\n")
 
 
@@ -32,7 +32,7 @@ def test_unreadable_prompt_file_names_the_line(tmp_path):
     bad.write_bytes(b"a person walks\n\xff\xfe broken\n")
     with pytest.raises(ValueError, match="line 2: not UTF-8"):
         read_prompt_file(bad)
-    with pytest.raises(ValueError, match="cannot read prompt file"):
+    with pytest.raises(ValueError, match="prompt file not found"):
         read_prompt_file(tmp_path / "missing.txt")
 
 
@@ -110,7 +110,7 @@ def test_bad_prompt_file_and_model_exit_2(model, tmp_path, capsys):
 
 
 def test_overlong_prompt_is_truncated_with_a_warning(model, tmp_path, capsys):
-    long_prompt = "a person walks " + "and then walks again " * 80
+    long_prompt = "a person walks " + "!" * 280  # under the 300-character cap, over the 256-token encoder
     assert main(["generate", long_prompt, "--model", str(model), "--steps", "1", "--seconds", "2",
                  "--out", str(tmp_path / "x.npz")]) == 0
     assert "tokens; only the first" in capsys.readouterr().err

@@ -39,6 +39,7 @@ from typing import Iterator
 
 import numpy as np
 
+from ..inputs import InputError, check_output_folder
 from ..motion.bvh import BVHError, parse_bvh
 from . import captions as cap
 
@@ -303,14 +304,48 @@ def _read_manifest(folder: Path) -> dict | None:
     return data if isinstance(data, dict) and data.get("written_by") == "mld_core data prepare" else None
 
 
+def written_files(folder: Path) -> list[str]:
+    """Every file under ``folder``, as sorted paths relative to it."""
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if not p.is_dir())
+
+
+_LAYOUT_FILES = {MANIFEST, "LICENSE", "README.md", "Mean.npy", "Std.npy", "actions.json", "all.txt", "train.txt",
+                 "val.txt", "test.txt"}
+_LAYOUT_DIRS = {"new_joint_vecs", "new_joints", "texts"}
+
+
+def _ours(relative: str, listed: set | None) -> bool:
+    """Whether a previous run wrote this file: ``listed`` in its manifest (older manifests list no files: then the
+    folder layout this command writes decides)."""
+    if relative == MANIFEST:
+        return True
+    if listed is not None:
+        return relative in listed
+    top, _, rest = relative.partition("/")
+    return relative in _LAYOUT_FILES if not rest else (top in _LAYOUT_DIRS and "/" not in rest)
+
+
 def check_out(out: Path) -> None:
-    """Refuse an --out that holds anything but a previous output of this command."""
-    if out.exists() and not out.is_dir():
-        raise PrepareError(f"--out {out} exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and _read_manifest(out) is None:
+    """Refuse an --out that holds anything but a previous output of this command: a rerun replaces only the files
+    that run listed in its manifest, so a file the user added there stops it (nothing is changed)."""
+    try:
+        check_output_folder(out, "--out")
+    except InputError as exc:
+        raise PrepareError(str(exc)) from None
+    if not out.is_dir() or not any(out.iterdir()):
+        return
+    manifest = _read_manifest(out)
+    if manifest is None:
         raise PrepareError(
             f"--out {out} is not empty and was not written by this command (no {MANIFEST}); "
             "choose a new or empty folder - nothing was changed"
+        )
+    listed = set(manifest["files"]) if isinstance(manifest.get("files"), list) else None
+    extra = [f for f in written_files(out) if not _ours(f, listed)]
+    if extra:
+        raise PrepareError(
+            f"--out {out} holds {len(extra)} file(s) this command did not write (e.g. {extra[0]}); move them out "
+            "or choose another folder - nothing was changed"
         )
 
 
@@ -477,7 +512,8 @@ def prepare_bandai(src, out, *, workers: int = 2, mirror: bool = True, progress:
         lic = next((licenses[k] for k in sorted(licenses)), None)
         (tmp / "README.md").write_text(_readme(summary), encoding="utf-8")
         (tmp / "LICENSE").write_text(_license(lic), encoding="utf-8")
-        (tmp / MANIFEST).write_text(json.dumps(summary, indent=1) + "\n", encoding="utf-8")
+        manifest = {**summary, "files": written_files(tmp)}  # what a rerun may replace, and nothing else
+        (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
 
         # Swap into place: the previous output (ours, checked again) is removed only after the rename.
         check_out(out)

@@ -5,6 +5,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from mld_core.cli import UsageError
+from mld_core.inputs import check_output_folder
+
 
 def _common(p) -> None:
     p.add_argument("--data", required=True, help="a HumanML3D-format folder (HumanML3D, KIT-ML, or `data prepare` output)")
@@ -22,44 +25,87 @@ def _common(p) -> None:
 
 
 def _check_data(path: str) -> None:
-    from mld_core.cli import UsageError
+    """A HumanML3D-format folder whose statistics and training split can be used, checked before the run folder
+    is made."""
+    import numpy as np
 
     root = Path(path)
     missing = [n for n in ("new_joint_vecs", "train.txt", "Mean.npy", "Std.npy") if not (root / n).exists()]
     if missing:
         raise UsageError(f"{root} is not a HumanML3D-format folder (missing {', '.join(missing)})")
+    stats = []
+    for name in ("Mean.npy", "Std.npy"):
+        try:
+            stats.append(np.asarray(np.load(root / name, allow_pickle=False), np.float64))
+        except (OSError, ValueError) as exc:
+            raise UsageError(f"{root / name} is not a numpy array file: {exc}") from None
+    mean, std = stats
+    if mean.ndim != 1 or mean.shape != std.shape:
+        raise UsageError(f"{root}: Mean.npy and Std.npy must be vectors of one length, got {mean.shape} and {std.shape}")
+    if not (np.isfinite(mean).all() and np.isfinite(std).all()) or (std <= 0).any():
+        raise UsageError(f"{root}: Mean.npy/Std.npy hold non-finite values or a std <= 0")
+    ids = [line.strip() for line in (root / "train.txt").read_text(errors="replace").splitlines() if line.strip()]
+    if not any((root / "new_joint_vecs" / f"{i}.npy").is_file() for i in ids):
+        raise UsageError(f"{root}: the training split (train.txt) names no clip found in new_joint_vecs/")
 
 
-def _overrides(args) -> dict:
+def _overrides(args, config_class) -> dict:
+    """--config: a JSON object of the stage config's own fields."""
     if args.config is None:
         return {}
     try:
-        return json.loads(args.config.read_text())
+        data = json.loads(args.config.read_text())
     except (OSError, ValueError) as exc:
-        from mld_core.cli import UsageError
-
         raise UsageError(f"cannot read --config {args.config}: {exc}") from None
+    if not isinstance(data, dict):
+        raise UsageError(f"--config {args.config} must hold a JSON object of settings, got a {type(data).__name__}")
+    unknown = sorted(set(data) - set(config_class.__dataclass_fields__))
+    if unknown:
+        raise UsageError(f"--config {args.config}: unknown setting(s) {', '.join(unknown)}; known: "
+                         f"{', '.join(sorted(config_class.__dataclass_fields__))}")
+    return data
 
 
-def _run(train, cfg, resume: bool) -> int:
+def _run(train, make_config, out: str, resume: bool) -> int:
+    """Build the stage config and train; a run that fails before its first checkpoint leaves no folder behind."""
+    import shutil
+
     from mld_core.checkpoint import CheckpointError
-    from mld_core.cli import UsageError
 
+    out_dir = Path(out)
+    check_output_folder(out_dir, "--out")
+    new_folder = not out_dir.exists()
+    try:
+        cfg = make_config()
+    except (TypeError, ValueError) as exc:
+        raise UsageError(f"bad settings: {exc}") from None
     try:
         out = train(cfg, resume=resume)
-    except (FileExistsError, FileNotFoundError, CheckpointError) as exc:
-        raise UsageError(str(exc)) from None
+    except (FileExistsError, FileNotFoundError, NotADirectoryError, CheckpointError, ValueError) as exc:
+        if new_folder and out_dir.is_dir() and not (out_dir / "train_state.pt").exists():
+            shutil.rmtree(out_dir, ignore_errors=True)
+        raise UsageError(str(exc).splitlines()[0] if str(exc) else type(exc).__name__) from None
+    except BaseException:
+        if new_folder and out_dir.is_dir() and not (out_dir / "train_state.pt").exists():
+            shutil.rmtree(out_dir, ignore_errors=True)
+        raise
     print(f"wrote {out}")
     return 0
 
 
 def run_vae(args) -> int:
-    from mld_core.models.transformer import TransformerConfig
-    from mld_core.models.vae import VAEConfig
     from mld_core.training.vae import VAETrainConfig, train_vae
 
     _check_data(args.data)
-    over = _overrides(args)
+    over = _overrides(args, VAETrainConfig)
+    return _run(train_vae, lambda: _vae_config(args, over), args.out, args.resume)
+
+
+def _vae_config(args, over: dict):
+    from mld_core.models.transformer import TransformerConfig
+    from mld_core.models.vae import VAEConfig
+    from mld_core.training.vae import VAETrainConfig
+
     vae = VAEConfig(**over.pop("vae", {}))
     if args.layers or args.no_skip or args.latent_tokens:
         layers = args.layers or vae.encoder.layers
@@ -72,16 +118,22 @@ def run_vae(args) -> int:
     if args.lr:
         cfg.lr = args.lr
     cfg.bf16 = cfg.bf16 or args.bf16
-    return _run(train_vae, cfg, args.resume)
+    return cfg
 
 
 def run_denoiser(args) -> int:
-    from mld_core.models.denoiser import DenoiserConfig
-    from mld_core.models.transformer import TransformerConfig
     from mld_core.training.denoiser import DenoiserTrainConfig, train_denoiser
 
     _check_data(args.data)
-    over = _overrides(args)
+    over = _overrides(args, DenoiserTrainConfig)
+    return _run(train_denoiser, lambda: _denoiser_config(args, over), args.out, args.resume)
+
+
+def _denoiser_config(args, over: dict):
+    from mld_core.models.denoiser import DenoiserConfig
+    from mld_core.models.transformer import TransformerConfig
+    from mld_core.training.denoiser import DenoiserTrainConfig
+
     den = DenoiserConfig(**{"cond": args.cond, **over.pop("denoiser", {})})
     if args.layers or args.no_skip or args.cross_attention:
         den.transformer = TransformerConfig(**{**den.transformer.to_dict(), "layers": args.layers or den.transformer.layers,
@@ -91,7 +143,7 @@ def run_denoiser(args) -> int:
     if args.lr:
         cfg.lr = args.lr
     cfg.bf16 = cfg.bf16 or args.bf16
-    return _run(train_denoiser, cfg, args.resume)
+    return cfg
 
 
 def register(groups) -> None:

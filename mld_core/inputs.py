@@ -1,0 +1,331 @@
+"""User input checked once, by the same rules, for the CLI, the batch script, the panel and the Python API.
+
+Numbers (seconds, seeds, steps, guidance, variants, threads, fps), prompt text, prompt files (one format for
+``generate --prompts`` and the batch: plain text or MLD's ``<frames> <text>``), the model's own length limits
+(read from its config.json without loading weights) and output paths (never an input, another output, a folder
+or under a file). Every problem raises :class:`InputError` with one sentence the user can act on.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+MODEL_FPS = 20
+DEFAULT_MIN_SECONDS = 2.0  # the bundled model's min_frames / fps; a model's own limits take precedence
+DEFAULT_MAX_SECONDS = 9.8
+MAX_PROMPT_CHARS = 300
+MAX_STEPS = 500  # DDIM; more steps buy nothing (and 1000 + steps_offset overflows the schedule)
+MAX_VARIANTS = 16
+MAX_GUIDANCE = 30.0
+SEED_MAX = 2**31 - 1
+MAX_THREADS = 1024
+MAX_FPS = 1000.0
+
+
+class InputError(ValueError):
+    """The user's input cannot be used; the message says why and what to do."""
+
+
+# -- numbers ------------------------------------------------------------------------------------------------------
+def finite_number(value, what: str) -> float:
+    """``value`` as a finite float (no bools, NaN, inf or text)."""
+    if isinstance(value, bool):
+        raise InputError(f"{what} must be a number, got {value!r}")
+    try:
+        number = float(value)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(f"{what} must be a number, got {value!r}") from None
+    if not math.isfinite(number):
+        raise InputError(f"{what} must be a finite number, got {value!r}")
+    return number
+
+
+def whole_number(value, what: str) -> int:
+    """``value`` as an int; 3.0 is fine, 1.7 is not."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        return value
+    number = finite_number(value, what)
+    if number != int(number):
+        raise InputError(f"{what} must be a whole number, got {value!r}")
+    return int(number)
+
+
+def number_in_range(value, what: str, lo: float, hi: float) -> float:
+    number = finite_number(value, what)
+    if not lo <= number <= hi:
+        raise InputError(f"{what} must be between {lo:g} and {hi:g}, got {number:g}")
+    return number
+
+
+def int_in_range(value, what: str, lo: int, hi: int) -> int:
+    number = whole_number(value, what)
+    if not lo <= number <= hi:
+        raise InputError(f"{what} must be between {lo} and {hi}, got {number}")
+    return number
+
+
+def check_seed(seed, count: int = 1, what: str = "Seed") -> int:
+    """A seed whose ``count`` consecutive seeds (variants, prompt lines) all stay in 0..SEED_MAX."""
+    seed = whole_number(seed, what)
+    top = SEED_MAX - max(int(count), 1) + 1
+    if not 0 <= seed <= top:
+        extra = f" (seeds {seed}..{seed + count - 1} are used)" if count > 1 else ""
+        raise InputError(f"{what} must be between 0 and {top}{extra}, got {seed}")
+    return seed
+
+
+def check_steps(steps, what: str = "Steps") -> int:
+    return int_in_range(steps, what, 1, MAX_STEPS)
+
+
+def check_guidance(guidance, what: str = "Guidance") -> float | None:
+    """None or 0 means the model's default; otherwise a finite scale in (0, MAX_GUIDANCE]."""
+    if guidance is None:
+        return None
+    guidance = finite_number(guidance, what)
+    if guidance < 0 or guidance > MAX_GUIDANCE:
+        raise InputError(f"{what} must be between 0 (the model's default) and {MAX_GUIDANCE:g}, got {guidance:g}")
+    return guidance or None
+
+
+def check_threads(threads, what: str = "Threads") -> int:
+    """0 or None: torch's default; else 1..MAX_THREADS."""
+    if threads is None:
+        return 0
+    return int_in_range(threads, what, 0, MAX_THREADS)
+
+
+def check_fps(fps, what: str = "fps") -> float | None:
+    if fps is None:
+        return None
+    return number_in_range(fps, what, 1, MAX_FPS)
+
+
+# -- the model's limits ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ModelLimits:
+    """Lengths a model can make, from its config.json (fps, min_frames, max_frames)."""
+
+    fps: int = MODEL_FPS
+    min_frames: int = int(round(DEFAULT_MIN_SECONDS * MODEL_FPS))
+    max_frames: int = int(round(DEFAULT_MAX_SECONDS * MODEL_FPS))
+
+    @property
+    def min_seconds(self) -> float:
+        return self.min_frames / self.fps
+
+    @property
+    def max_seconds(self) -> float:
+        return self.max_frames / self.fps
+
+
+def model_limits(model_dir=None) -> ModelLimits:
+    """The limits of ``model_dir`` (None: the bundled model); the defaults when its config cannot be read (loading
+    the model reports that problem properly)."""
+    if model_dir is None:
+        model_dir = Path(__file__).resolve().parent / "weights" / "default"
+    try:
+        data = json.loads((Path(model_dir) / "config.json").read_text(encoding="utf-8"))
+        limits = ModelLimits(int(data.get("fps", MODEL_FPS)), int(data.get("min_frames", 40)),
+                             int(data.get("max_frames", 196)))
+    except (OSError, ValueError, TypeError, AttributeError):
+        return ModelLimits()
+    if limits.fps < 1 or not 1 <= limits.min_frames <= limits.max_frames:
+        return ModelLimits()
+    return limits
+
+
+def check_seconds(seconds, limits: ModelLimits | None = None, what: str = "Length") -> float:
+    """Seconds within the model's range, rounded to whole model frames."""
+    limits = limits or ModelLimits()
+    seconds = finite_number(seconds, f"{what} (seconds)")
+    if not limits.min_seconds - 1e-6 <= seconds <= limits.max_seconds + 1e-6:
+        raise InputError(f"{what} must be between {limits.min_seconds:g} and {limits.max_seconds:g} seconds for "
+                         f"this model, got {seconds:g}")
+    return int(round(seconds * limits.fps)) / limits.fps
+
+
+# -- prompt text and prompt files -------------------------------------------------------------------------------------
+def clean_prompt(prompt) -> str:
+    """Collapse whitespace; the prompt as the model will see it."""
+    if not isinstance(prompt, str):
+        raise InputError(f"The prompt must be text, not {type(prompt).__name__}")
+    return " ".join(prompt.split())
+
+
+def check_prompt(prompt) -> str:
+    text = clean_prompt(prompt)
+    if not text:
+        raise InputError("Type a prompt describing the motion, e.g. 'a person walks forward and waves'")
+    if len(text) > MAX_PROMPT_CHARS:
+        raise InputError(f"The prompt is {len(text)} characters long; keep it under {MAX_PROMPT_CHARS}")
+    if not any(ch.isalpha() for ch in text):
+        raise InputError(f"The prompt {text!r} has no words; describe the motion in words")
+    return text
+
+
+@dataclass(frozen=True)
+class PromptLine:
+    line: int  # 1-based line number in the file (0: a prompt given on the command line)
+    text: str
+    frames: int | None  # from a "<frames> <text>" line at MODEL_FPS; None: use the default length
+
+    def seconds(self, default: float) -> float:
+        return default if self.frames is None else self.frames / MODEL_FPS
+
+
+_LEADING_NUMBER = re.compile(r"^([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)(?:\s+(.*))?$")
+
+
+def parse_prompt_lines(text: str, source: str = "prompts") -> list[PromptLine]:
+    """One prompt per line; MLD's ``<frames> <text>`` sets the length in frames at 20 fps. Blank lines and ``#``
+    comments are skipped. A line starting with a number that is not a positive whole frame count is refused."""
+    lines = []
+    for number, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        where = f"{source}, line {number}"
+        if "\x00" in line:
+            raise InputError(f"{where}: not text")
+        frames, prompt = _split_frames(line, where)
+        try:
+            lines.append(PromptLine(number, check_prompt(prompt), frames))
+        except InputError as exc:
+            raise InputError(f"{where}: {exc}") from None
+    if not lines:
+        raise InputError(f"{source}: no prompts (one per line, optionally '<frames> <text>')")
+    return lines
+
+
+def _split_frames(line: str, where: str) -> tuple[int | None, str]:
+    match = _LEADING_NUMBER.match(line)
+    if not match:
+        return None, line
+    token, prompt = match.group(1), (match.group(2) or "").strip()
+    if not token.isdigit() or int(token) <= 0:
+        raise InputError(f"{where}: the length must be a positive whole number of frames at {MODEL_FPS} fps "
+                         f"('<frames> <text>'), got {token!r}")
+    if not prompt:
+        raise InputError(f"{where}: a length ({token} frames) but no prompt text")
+    return int(token), prompt
+
+
+def read_prompt_file(path) -> list[PromptLine]:
+    """Read and parse a UTF-8 prompt file."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"prompt file not found: {path}")
+    if not path.is_file():
+        raise InputError(f"cannot read prompt file {path}: not a file")
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read prompt file {path}: {exc.strerror or exc}") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise InputError(f"{path}, line {line}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    return parse_prompt_lines(text, str(path))
+
+
+# -- one generation request ----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class GenerateRequest:
+    prompt: str
+    seconds: float = 4.0
+    seed: int = 0
+    steps: int = 50
+    guidance: float | None = None  # None: the model's own default
+    variants: int = 1
+    model_dir: str | None = None  # None: the bundled default model
+    device: str = "cpu"
+    threads: int = 0  # 0: leave torch's default
+    extra: dict = field(default_factory=dict, compare=False)
+
+    @property
+    def frames(self) -> int:
+        """Length in model frames (20 fps)."""
+        return int(round(self.seconds * MODEL_FPS))
+
+    def to_dict(self) -> dict:
+        data = asdict(self)
+        data.pop("extra")
+        return data
+
+    def with_(self, **changes) -> "GenerateRequest":
+        return replace(self, **changes)
+
+
+def validate_request(prompt, seconds=4.0, seed=0, steps=50, guidance=None, variants=1, *, model_dir=None,
+                     device="cpu", threads=0, min_seconds: float | None = None,
+                     max_seconds: float | None = None) -> GenerateRequest:
+    """Check every field and return a normalised :class:`GenerateRequest` (seconds rounded to whole frames).
+    The length limits are ``min_seconds``/``max_seconds`` when given, else those of ``model_dir``'s config."""
+    text = check_prompt(prompt)
+    limits = model_limits(model_dir or None)
+    if min_seconds is not None or max_seconds is not None:
+        lo = limits.min_seconds if min_seconds is None else float(min_seconds)
+        hi = limits.max_seconds if max_seconds is None else float(max_seconds)
+        limits = ModelLimits(MODEL_FPS, int(round(lo * MODEL_FPS)), int(round(hi * MODEL_FPS)))
+    seconds = check_seconds(seconds, limits)
+    variants = int_in_range(variants, "Variants", 1, MAX_VARIANTS)
+    seed = check_seed(seed, variants)
+    steps = check_steps(steps)
+    guidance = check_guidance(guidance)
+    threads = check_threads(threads)
+    device = str(device or "cpu").strip().lower()
+    if device not in {"cpu", "cuda", "mps", "auto"}:
+        raise InputError(f"Unknown device {device!r}; use cpu, cuda, mps or auto")
+    model_dir = str(model_dir).strip() if model_dir else None
+    return GenerateRequest(prompt=text, seconds=seconds, seed=seed, steps=steps, guidance=guidance,
+                           variants=variants, model_dir=model_dir or None, device=device, threads=threads)
+
+
+# -- output paths -------------------------------------------------------------------------------------------------
+def check_outputs(outputs: dict[str, Path], inputs: dict[str, Path] | None = None, overwrite: bool = False) -> None:
+    """Refuse an output that is a folder, lies under a file, equals an input or another output, or exists
+    (without ``overwrite``). ``outputs``/``inputs`` map a name for the message (e.g. "--out") to a path."""
+    seen: dict[Path, str] = {}
+    for name, path in (inputs or {}).items():
+        if path is not None:
+            seen[_key(path)] = name
+    for name, path in outputs.items():
+        path = Path(path)
+        key = _key(path)
+        if key in seen:
+            raise InputError(f"{name} {path} is the same file as {seen[key]}; choose another path")
+        seen[key] = name
+        if path.is_dir():
+            raise InputError(f"{name} {path} is a folder; name a file")
+        blocker = _file_ancestor(path)
+        if blocker is not None:
+            raise InputError(f"{name} {path}: {blocker} is a file, not a folder")
+        if path.exists() and not overwrite:
+            raise InputError(f"{path} exists; pass --overwrite to replace it")
+
+
+def check_output_folder(path: Path, name: str = "--out") -> None:
+    """An output folder may exist (as a folder) or be created; no file may stand where a folder is needed."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{name} {path} exists and is not a folder")
+    blocker = _file_ancestor(path)
+    if blocker is not None:
+        raise InputError(f"{name} {path}: {blocker} is a file, not a folder")
+
+
+def _key(path) -> Path:
+    return Path(path).expanduser().resolve()
+
+
+def _file_ancestor(path: Path) -> Path | None:
+    for parent in Path(path).expanduser().absolute().parents:
+        if parent.exists():
+            return None if parent.is_dir() else parent
+    return None

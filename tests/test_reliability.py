@@ -1,0 +1,254 @@
+"""Bad and unusual input on every surface without Blender (generate, data prepare, train, evaluate, bench, the
+Python API, the output writer): each case checks the exit code (or exception), a one-line message without a
+traceback, and that the file system is exactly as before (nothing written, existing files byte-identical).
+The batch script and the add-on in Blender: tests/test_reliability_bpy.py. Summary: docs/reliability.md."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mld_core import inputs
+from mld_core.cli import main
+from mld_core.fileio import OutputSet
+from mld_core.testing import tiny_model
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory) -> Path:
+    return tiny_model(tmp_path_factory.mktemp("tiny") / "model")
+
+
+def snapshot(root: Path) -> dict:
+    """Every file under ``root`` with its bytes, and every folder."""
+    return {p.relative_to(root).as_posix(): (None if p.is_dir() else p.read_bytes()) for p in sorted(root.rglob("*"))}
+
+
+def refused(argv, root: Path, capsys, words: str) -> str:
+    """Run the CLI; it must exit 2 with one ``error:`` line naming ``words`` and leave ``root`` unchanged."""
+    before = snapshot(root)
+    code = main([str(a) for a in argv])
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.startswith("error:")]
+    assert code == 2, (argv, err)
+    assert len(lines) == 1 and words.lower() in lines[0].lower(), (argv, err)
+    assert "Traceback" not in err, err
+    assert snapshot(root) == before, f"{argv} changed the file system"
+    return lines[0]
+
+
+@pytest.fixture
+def work(tmp_path) -> Path:
+    (tmp_path / "keep.npz").write_bytes(b"user data")
+    (tmp_path / "prompts.txt").write_text("a person walks\n")
+    (tmp_path / "a_file").write_text("not a folder")
+    (tmp_path / "folder").mkdir()
+    return tmp_path
+
+
+# -- generate ------------------------------------------------------------------------------------------------------
+GENERATE_CASES = [
+    (["--guidance", "nan"], "finite"),
+    (["--guidance", "inf"], "finite"),
+    (["--guidance", "1e30"], "guidance must be between"),
+    (["--guidance", "-1"], "guidance must be between"),
+    (["--seed", str(2**63)], "--seed must be between"),
+    (["--seed", str(2**70)], "--seed must be between"),
+    (["--seed", "-1"], "--seed must be between"),
+    (["--threads", "-1"], "--threads must be between"),
+    (["--steps", "0"], "--steps must be between"),
+    (["--fps", "0"], "--fps must be between"),
+    (["--fps", "-5"], "--fps must be between"),
+    (["--seconds", "nan"], "finite"),
+    (["--seconds", "0.5"], "between 1 and 9.8 seconds"),
+    (["--seconds", "100"], "between 1 and 9.8 seconds"),
+    (["--variants", "0"], "--variants must be between"),
+    (["--variants", "2", "--best", "3"], "--best must be between"),
+]
+
+
+@pytest.mark.parametrize("extra, words", GENERATE_CASES, ids=[" ".join(c[0]) for c in GENERATE_CASES])
+def test_generate_refuses_bad_numbers_before_any_work(model, work, capsys, extra, words):
+    refused(["generate", "a person walks", "--model", model, "--out", work / "t.npz", *extra], work, capsys, words)
+
+
+def test_generate_output_paths(model, work, capsys):
+    gen = ["generate", "a person walks", "--model", model, "--steps", "1"]
+    refused([*gen, "--out", work / "x.npz", "--bvh", work / "x.npz"], work, capsys, "same file")
+    refused(["generate", "--prompts", work / "prompts.txt", "--model", model, "--out", work / "prompts.txt"], work,
+            capsys, "same file")
+    refused([*gen, "--out", work / "keep.npz"], work, capsys, "exists; pass --overwrite")
+    refused([*gen, "--out", work / "folder"], work, capsys, "is a folder")
+    refused([*gen, "--out", work / "a_file" / "t.npz"], work, capsys, "is a file, not a folder")
+    refused([*gen, "--out", work / "t.npz", "--bvh", work / "a_file" / "t.bvh"], work, capsys, "is a file")
+    (work / "x_001.bvh").write_text("a user's file")  # the per-variant BVH names are checked too
+    refused([*gen, "--variants", "2", "--out", work / "t.npz", "--bvh", work / "x.bvh"], work, capsys,
+            "x_001.bvh exists")
+    (work / "x_001.bvh").unlink()
+    # --overwrite replaces, and missing folders are made for outputs
+    assert main([*map(str, gen), "--out", str(work / "keep.npz"), "--overwrite", "--bvh",
+                 str(work / "new" / "dir" / "t.bvh")]) == 0
+    assert np.load(work / "keep.npz")["joints"].shape[-2:] == (22, 3)
+    assert (work / "new" / "dir" / "t.bvh").is_file()
+    assert not [p for p in work.rglob(".*") if p.is_file()], "temporary files left"
+
+
+def test_generate_prompt_text_and_files(model, work, capsys):
+    gen = ["--model", model, "--out", work / "t.npz"]
+    refused(["generate", "!!! ???", *gen], work, capsys, "has no words")
+    refused(["generate", "   ", *gen], work, capsys, "empty prompt")
+    for text, words in [("-5 a person walks\n", "positive whole number of frames"),
+                        ("2.5 a person walks\n", "positive whole number of frames"),
+                        ("100\n", "no prompt text"), ("a walk\n!!!\n", "line 2")]:
+        (work / "bad.txt").write_text(text)
+        refused(["generate", "--prompts", work / "bad.txt", *gen], work, capsys, words)
+    refused(["generate", "a person walks", "--action", "walk", *gen], work, capsys, "needs an action-conditioned")
+
+
+@pytest.mark.parametrize("edit, words", [
+    (lambda c: [c], "expected a JSON object"),
+    (lambda c: {**c, "vae": "garbage"}, "vae must be an object"),
+    (lambda c: {**c, "fps": 0}, "fps must be a positive whole number"),
+    (lambda c: {**c, "std": [math.nan] * len(c["std"])}, "non-finite"),
+    (lambda c: {**c, "text_encoder": {"kind": "no-such-encoder"}}, "unknown text encoder kind"),
+], ids=["list", "vae-garbage", "fps-0", "nan-std", "unknown-encoder"])
+def test_generate_refuses_a_broken_model_config(model, work, capsys, edit, words):
+    broken = work / "broken_model"
+    shutil.copytree(model, broken)
+    config = json.loads((broken / "config.json").read_text())
+    (broken / "config.json").write_text(json.dumps(edit(config), allow_nan=True))
+    refused(["generate", "a person walks", "--model", broken, "--out", work / "t.npz"], work, capsys, words)
+
+
+def test_the_same_seed_rule_for_prompt_files_as_the_batch(model, tmp_path):
+    (tmp_path / "p.txt").write_text("a person walks\na person runs\n")
+    assert main(["generate", "--prompts", str(tmp_path / "p.txt"), "--model", str(model), "--steps", "1",
+                 "--seed", "7", "--variants", "2", "--out", str(tmp_path / "t.npz")]) == 0
+    assert np.load(tmp_path / "t.npz")["seeds"].tolist() == [7, 8, 9, 10]
+
+
+# -- the Python API --------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def pipe(model):
+    from mld_core.pipeline import MLDPipeline
+
+    return MLDPipeline.from_pretrained(model)
+
+
+@pytest.mark.parametrize("kwargs, words", [
+    (dict(prompts=None), "prompts must be a string"),
+    (dict(prompts=42), "prompts must be a string"),
+    (dict(guidance_scale=float("nan")), "finite"),
+    (dict(guidance_scale=float("inf")), "finite"),
+    (dict(num_inference_steps=0), "num_inference_steps must be between"),
+    (dict(seed=1.7), "whole number"),
+    (dict(seed=2**70), "seed must be between"),
+    (dict(seed=-3), "seed must be between"),
+    (dict(num_variants=0), "num_variants must be between"),
+    (dict(seconds=float("nan")), "seconds"),
+], ids=lambda v: str(v)[:40])
+def test_pipeline_call_rejects_bad_arguments(pipe, kwargs, words):
+    kwargs = {"prompts": "a person walks", "num_inference_steps": 1, **kwargs}
+    prompts = kwargs.pop("prompts")
+    with pytest.raises(ValueError, match=words):
+        pipe(prompts, **kwargs)
+
+
+def test_pipeline_never_returns_non_finite_joints(pipe):
+    with pytest.raises(ValueError, match="non-finite"):
+        pipe("a person walks", guidance_scale=1e30, num_inference_steps=2)
+    out = pipe("a person walks", num_inference_steps=1, seed=np.int64(3))  # numpy integers are fine seeds
+    assert np.isfinite(out.joints).all() and out.seeds == [3]
+
+
+# -- the output writer: all or none, and one winner of a race --------------------------------------------------------
+def test_output_set_commits_all_or_none(tmp_path):
+    (tmp_path / "b.txt").write_text("someone else's")
+    with pytest.raises(FileExistsError):
+        with OutputSet() as out:
+            out.stage(tmp_path / "a.txt", lambda t: Path(t).write_text("a"))
+            out.stage(tmp_path / "b.txt", lambda t: Path(t).write_text("b"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b.txt"]  # a.txt was rolled back, no temporary left
+    assert (tmp_path / "b.txt").read_text() == "someone else's"
+    with pytest.raises(RuntimeError):
+        with OutputSet() as out:
+            out.stage(tmp_path / "new" / "c.txt", lambda t: Path(t).write_text("c"))
+            raise RuntimeError("a failure after staging")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b.txt"]  # the folder it made is gone too
+
+
+def test_two_runs_racing_for_one_output_one_wins(tmp_path):
+    first, second = OutputSet(), OutputSet()
+    first.stage(tmp_path / "take.blend", lambda t: Path(t).write_text("first"))
+    second.stage(tmp_path / "take.blend", lambda t: Path(t).write_text("second"))
+    first.commit()
+    with pytest.raises(FileExistsError, match="another run"):
+        second.commit()
+    assert (tmp_path / "take.blend").read_text() == "first"
+    assert [p.name for p in tmp_path.iterdir()] == ["take.blend"]
+
+
+def test_check_outputs_resolves_paths(tmp_path):
+    with pytest.raises(inputs.InputError, match="same file"):
+        inputs.check_outputs({"--out": tmp_path / "x" / ".." / "t.npz", "--bvh": tmp_path / "t.npz"})
+    with pytest.raises(inputs.InputError, match="same file as --prompts"):
+        inputs.check_outputs({"--out": tmp_path / "p.txt"}, {"--prompts": tmp_path / "." / "p.txt"})
+
+
+# -- data prepare, train, evaluate, bench -------------------------------------------------------------------------
+def test_data_prepare_keeps_what_the_user_added(fixtures, tmp_path, capsys):
+    src, out = fixtures / "bandai", tmp_path / "prepared"
+    assert main(["data", "prepare", "bandai", str(src), "--out", str(out), "--workers", "1", "--quiet"]) == 0
+    capsys.readouterr()
+    (out / "my_notes.txt").write_text("mine")
+    (out / "texts" / "extra.txt").write_text("mine too")
+    refused(["data", "prepare", "bandai", src, "--out", out, "--workers", "1", "--quiet"], tmp_path, capsys,
+            "did not write")
+    (out / "my_notes.txt").unlink()
+    (out / "texts" / "extra.txt").unlink()
+    assert main(["data", "prepare", "bandai", str(src), "--out", str(out), "--workers", "1", "--quiet"]) == 0
+    (tmp_path / "a_file").write_text("x")
+    refused(["data", "prepare", "bandai", src, "--out", tmp_path / "a_file" / "out"], tmp_path, capsys,
+            "is a file, not a folder")
+
+
+def _h3d_folder(root: Path) -> Path:
+    (root / "new_joint_vecs").mkdir(parents=True)
+    np.save(root / "new_joint_vecs" / "000001.npy", np.zeros((60, 263), np.float32))
+    (root / "train.txt").write_text("000001\n")
+    np.save(root / "Mean.npy", np.zeros(263, np.float32))
+    np.save(root / "Std.npy", np.ones(263, np.float32))
+    return root
+
+
+def test_train_refuses_bad_data_and_settings_and_leaves_no_run_folder(tmp_path, capsys):
+    data = _h3d_folder(tmp_path / "data")
+    run = tmp_path / "run"
+    train = ["train", "vae", "--data", data, "--out", run, "--steps", "1"]
+    (tmp_path / "list.json").write_text("[1, 2]")
+    (tmp_path / "unknown.json").write_text('{"no_such_setting": 1}')
+    refused([*train, "--config", tmp_path / "list.json"], tmp_path, capsys, "JSON object")
+    refused([*train, "--config", tmp_path / "unknown.json"], tmp_path, capsys, "unknown setting")
+    refused([*train, "--threads", "-1"], tmp_path, capsys, "--threads must be between")
+    (tmp_path / "a_file").write_text("x")
+    refused(["train", "vae", "--data", data, "--out", tmp_path / "a_file"], tmp_path, capsys, "not a folder")
+    (data / "Mean.npy").write_bytes(b"garbage")
+    refused(train, tmp_path, capsys, "not a numpy array")
+    np.save(data / "Mean.npy", np.zeros(263, np.float32))
+    (data / "train.txt").write_text("")
+    refused(train, tmp_path, capsys, "names no clip")
+    refused(["train", "denoiser", "--data", data, "--vae", tmp_path / "none", "--out", run], tmp_path, capsys,
+            "names no clip")
+    assert not run.exists()
+
+
+@pytest.mark.parametrize("argv", [["evaluate", "t2m", "--data", "x", "--threads", "-1"], ["bench", "--threads", "-1"]])
+def test_evaluate_and_bench_refuse_negative_threads(tmp_path, capsys, argv):
+    refused(argv, tmp_path, capsys, "--threads must be between")
