@@ -32,7 +32,7 @@ def register():
     import importlib
 
     _env.add_user_site_packages()
-    names = ("preferences", "properties", "operators", "panels")
+    names = ("ui.preferences", "ui.properties", "ui.operators", "ui.panels")
     _bpy_modules = tuple(importlib.import_module(f"{__name__}.{n}") for n in names)
     for module in _bpy_modules:
         module.register()

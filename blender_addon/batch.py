@@ -114,8 +114,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def retarget_inputs(args, addon):
     """(RetargetSettings, BoneMap or None) from the arguments, checked before any work (BatchError)."""
-    wiring = importlib.import_module(addon.__name__ + ".retarget_wiring")
-    bone_maps = importlib.import_module(addon.__name__ + ".bone_maps")
+    wiring = importlib.import_module("mld_core.rig.keying")
+    bone_maps = importlib.import_module("mld_core.rig.bone_maps")
     try:
         settings = wiring.RetargetSettings(
             reduce=args.reduce, tolerance_deg=args.tolerance, rotation_mode=args.rotation_mode,
@@ -278,8 +278,8 @@ def _prepare_scene(args, addon):
     if args.fps:
         fps = float(args.fps)
         scene.render.fps, scene.render.fps_base = max(1, round(fps)), round(fps) / fps
-    rig = importlib.import_module(addon.__name__ + ".rig")
-    apply = importlib.import_module(addon.__name__ + ".apply")
+    rig = importlib.import_module(addon.__name__ + ".scene.canonical_armature")
+    apply = importlib.import_module(addon.__name__ + ".scene.key_takes")
     if args.rig:
         return scene, _append_rig(Path(args.rig), args.rig_object)
     if args.bvh_rig:
@@ -298,9 +298,9 @@ def _prepare_scene(args, addon):
 
 def check_rig(obj, bone_map, addon) -> str:
     """Whether ``obj`` can be keyed (with ``bone_map``, else its detected map); returns the map's source."""
-    apply = importlib.import_module(addon.__name__ + ".apply")
-    rig = importlib.import_module(addon.__name__ + ".rig")
-    wiring = importlib.import_module(addon.__name__ + ".retarget_wiring")
+    apply = importlib.import_module(addon.__name__ + ".scene.key_takes")
+    rig = importlib.import_module(addon.__name__ + ".scene.canonical_armature")
+    wiring = importlib.import_module("mld_core.rig.keying")
     if bone_map is not None:
         problem = apply.not_editable(obj) or wiring.map_problem(bone_map, obj.data.bones.keys(), obj.name)
         if problem:
@@ -316,7 +316,7 @@ def check_rig(obj, bone_map, addon) -> str:
 def run(args) -> int:
     addon = _addon_package()
     from_pkg = lambda name: importlib.import_module(f"{addon.__name__}.{name}")  # noqa: E731
-    batchfile, env = from_pkg("batchfile"), from_pkg("env")
+    batchfile, env = from_pkg("worker.batchfile"), from_pkg("env")
 
     t_start = time.perf_counter()
     # 1. Inputs, all checked before any work.
@@ -355,7 +355,7 @@ def run(args) -> int:
     map_source = check_rig(obj, bone_map, addon)
 
     # 3. Model (once), then one take per line.
-    model_cache, generation, apply = from_pkg("model_cache"), from_pkg("generation"), from_pkg("apply")
+    model_cache, generation, apply = from_pkg("worker.model_cache"), from_pkg("worker.generation"), from_pkg("scene.key_takes")
     cache = model_cache.PipelineCache()
     t0 = time.perf_counter()
     pipe = cache.get(model_dir, args.device, args.threads)
@@ -406,7 +406,7 @@ def run(args) -> int:
         manifest = _manifest(args, paths, obj, map_source, pipe, model_dir, retarget, scene, records, env, apply,
                              load_s, t_start)
         if "preview" in paths:
-            preview = from_pkg("preview")
+            preview = from_pkg("scene.preview")
             t0 = time.perf_counter()
             outputs.stage(paths["preview"], lambda tmp: preview.render_preview(scene, obj, tmp), suffix=".png")
             manifest["preview"] = str(paths["preview"])
@@ -464,7 +464,7 @@ def main(argv=None) -> int:
         print("interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # noqa: BLE001 - one readable line; the traceback only with MLD_DEBUG=1
-        jobs = importlib.import_module(addon.__name__ + ".jobs")
+        jobs = importlib.import_module(addon.__name__ + ".worker.jobs")
         if os.environ.get("MLD_DEBUG"):
             import traceback
 

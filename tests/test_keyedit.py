@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from blender_addon import bone_maps as bm
-from blender_addon import keyedit as ke
-from blender_addon import retarget as rt
+from mld_core.rig import bone_maps as bm
+from mld_core.rig import keyframes as ke
+from mld_core.rig import retarget as rt
 
 WALK = "dataset-2_walk-turn-left_normal_027"
 

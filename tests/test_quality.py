@@ -260,7 +260,7 @@ def test_coverage_watcher_checks_only_the_last_edit_off_the_main_thread():
     import threading
     import time
 
-    from blender_addon.coverage_watch import CoverageWatcher, badge_lines, coverage_line
+    from blender_addon.worker.coverage_watch import CoverageWatcher, badge_lines, coverage_line
 
     seen = []
 

@@ -18,7 +18,8 @@ sys.path.insert(0, {tests!r})
 import bpy, addon_utils
 bpy.ops.wm.read_factory_settings(use_empty=True)
 addon_utils.enable("blender_addon", default_set=True)
-from blender_addon import panels, quality_ui
+from blender_addon.ui import panels
+from blender_addon.ui import quality_panel as quality_ui
 from recording_layout import Host, Layout
 
 ctx = bpy.context

@@ -79,7 +79,8 @@ bpy.ops.wm.save_as_mainfile(filepath=str(work / "cube.blend"))
 
 bpy.ops.wm.read_factory_settings(use_empty=True)
 addon_utils.enable("blender_addon", default_set=True)
-from blender_addon import apply, batch
+from blender_addon.scene import key_takes as apply
+from blender_addon import batch
 with bpy.data.libraries.load(str(work / "lib.blend"), link=True) as (src, dst):
     dst.objects = ["LibRig"]
 rig = dst.objects[0]

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from blender_addon import bone_maps as bm
-from blender_addon import retarget as rt
+from mld_core.rig import bone_maps as bm
+from mld_core.rig import retarget as rt
 from mld_core.motion import skeleton as sk
 
 CLIPS = ("dataset-2_walk-turn-left_normal_027", "dataset-2_wave-right-hand_normal_026", "dataset-1_bye_normal_001")

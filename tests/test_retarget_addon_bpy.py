@@ -25,8 +25,16 @@ import bpy, addon_utils
 bpy.ops.wm.read_factory_settings(use_empty=True)
 addon_utils.enable("blender_addon", default_set=True)
 addon_utils.enable("io_anim_bvh", default_set=True)
-from blender_addon import apply, generation, keys, operators, retarget as rt, retarget_ui, retarget_wiring, rig_io, runtime
-from blender_addon.validation import validate_request
+from blender_addon.scene import key_takes as apply
+from blender_addon.worker import generation
+from blender_addon.scene import write_action as keys
+from blender_addon.ui import operators
+from mld_core.rig import retarget as rt
+from blender_addon.ui import retarget_panel as retarget_ui
+from mld_core.rig import keying as retarget_wiring
+from blender_addon.scene import read_rig as rig_io
+from blender_addon.ui import runtime
+from blender_addon.worker.validation import validate_request
 import retarget_fidelity as fid
 
 out = {{}}
@@ -223,7 +231,7 @@ import sys
 sys.path.insert(0, {repo!r})
 import bpy
 bpy.ops.wm.open_mainfile(filepath={blend!r})
-from blender_addon.keys import fcurves_of
+from blender_addon.scene.write_action import fcurves_of
 arm = [o for o in bpy.data.objects if o.type == "ARMATURE"][0]
 acts = [a for a in bpy.data.actions if "mld_prompt" in a]
 ad = arm.animation_data

@@ -10,10 +10,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from blender_addon import bone_maps as bm
-from blender_addon import keyedit as ke
-from blender_addon import retarget as rt
-from blender_addon import retarget_wiring as rw
+from mld_core.rig import bone_maps as bm
+from mld_core.rig import keyframes as ke
+from mld_core.rig import retarget as rt
+from mld_core.rig import keying as rw
 from mld_core.motion.skeleton import JOINT_NAMES
 
 

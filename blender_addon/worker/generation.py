@@ -14,9 +14,9 @@ from datetime import datetime, timezone
 
 import numpy as np
 
-from .env import ADDON_VERSION_STRING
-from .naming import action_name
-from .validation import GenerateRequest
+from .dependencies import ADDON_VERSION_STRING
+from ..worker.naming import action_name
+from ..worker.validation import GenerateRequest
 
 PROVENANCE_PREFIX = "mld_"
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import bpy
 
-from .coverage_watch import CoverageWatcher, badge_lines, coverage_line
-from .env import missing_modules
+from ..worker.coverage_watch import CoverageWatcher, badge_lines, coverage_line
+from ..env import missing_modules
 
 POLL_S = 0.1
 
@@ -19,8 +19,8 @@ _watcher: CoverageWatcher | None = None
 
 def _model_key(context) -> tuple:
     """(model folder, device, threads) as Generate will use them (operators.request_from_settings)."""
-    from .env import model_dir_override
-    from .preferences import get_prefs
+    from ..env import model_dir_override
+    from ..ui.preferences import get_prefs
 
     prefs = get_prefs(context)
     model_dir = (prefs.model_dir if prefs is not None else "") or model_dir_override()
@@ -29,7 +29,7 @@ def _model_key(context) -> tuple:
 
 
 def _check(text: str, key: tuple):
-    from . import runtime
+    from ..ui import runtime
 
     model_dir, device, threads = key
     return runtime.cache().get(model_dir, device, threads).coverage([text])[0]
@@ -53,7 +53,7 @@ def prompt_changed(settings, context) -> None:
 
 
 def _poll():
-    from .runtime import tag_redraw
+    from ..ui.runtime import tag_redraw
 
     tag_redraw()
     return POLL_S if _watcher is not None and _watcher.pending else None

@@ -10,10 +10,10 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 
-from .generation import make_work
-from .installer import DependencyInstaller
-from .jobs import CANCELLED, DONE, JobRunner
-from .model_cache import PipelineCache
+from ..worker.generation import make_work
+from ..installer import DependencyInstaller
+from ..worker.jobs import CANCELLED, DONE, JobRunner
+from ..worker.model_cache import PipelineCache
 
 TICK_SECONDS = 0.05
 
@@ -110,7 +110,7 @@ def finish_job(job, target: Target | None) -> tuple[str, str]:
     """Apply (or report) one ended job on the main thread; returns (level, message) for a report."""
     import bpy
 
-    from .apply import apply_result
+    from ..scene.key_takes import apply_result
 
     scene = bpy.data.scenes.get(target.scene_name) if target else None
     scene = scene or bpy.context.scene

@@ -31,7 +31,7 @@ class JobCancelled(Exception):
 
 def user_message(exc: BaseException) -> str:
     """One readable sentence for an exception (no traceback)."""
-    from .env import dependency_message
+    from .dependencies import dependency_message
 
     if isinstance(exc, ModuleNotFoundError) and exc.name:
         root = exc.name.split(".")[0]

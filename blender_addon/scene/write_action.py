@@ -14,7 +14,7 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
-from .posing import BoneChannels
+from mld_core.rig.canonical_pose import BoneChannels
 
 
 def slotted_actions() -> bool:

@@ -5,9 +5,10 @@ from __future__ import annotations
 import bpy
 from bpy.props import EnumProperty, IntProperty, StringProperty
 
-from . import env, runtime
+from .. import env
+from ..ui import runtime
 
-ADDON_PACKAGE = __package__
+ADDON_PACKAGE = __package__.rpartition(".")[0]  # the add-on itself (this module lives in its ui package)
 
 
 def get_prefs(context=None):

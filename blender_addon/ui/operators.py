@@ -13,9 +13,10 @@ import random
 import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 
-from . import env, runtime
-from .apply import check_target, settings_of
-from .validation import RequestError, validate_request
+from .. import env
+from ..ui import runtime
+from ..scene.key_takes import check_target, settings_of
+from ..worker.validation import RequestError, validate_request
 
 
 # -- plain functions ------------------------------------------------------------------------------------------
@@ -97,7 +98,7 @@ class MLD_OT_generate(bpy.types.Operator):
         return True
 
     def execute(self, context):
-        from .preferences import get_prefs
+        from ..ui.preferences import get_prefs
 
         settings = context.scene.mld_motion
         obj = resolve_target(context)
@@ -171,7 +172,7 @@ class MLD_OT_create_armature(bpy.types.Operator):
         return True
 
     def execute(self, context):
-        from .rig import create_canonical_armature
+        from ..scene.canonical_armature import create_canonical_armature
 
         obj = create_canonical_armature(context, location=tuple(context.scene.cursor.location), body=self.body)
         context.scene.mld_motion.target = obj
@@ -203,7 +204,7 @@ class MLD_OT_install_dependencies(bpy.types.Operator):
         return context.window_manager.invoke_confirm(self, event)
 
     def execute(self, context):
-        from .installer import install_commands
+        from ..installer import install_commands
 
         target = env.user_site_dir()
         target.mkdir(parents=True, exist_ok=True)

@@ -23,8 +23,8 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
-from . import bone_maps as bm
-from . import keyedit as ke
+from mld_core.rig import bone_maps as bm
+from mld_core.rig import keyframes as ke
 
 # (identifier, label, description) for the panel's Rotation menu; "KEEP" keeps each bone's current mode.
 ROTATION_CHOICES = (

@@ -10,7 +10,7 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
-from . import posing
+from mld_core.rig import canonical_pose as posing
 
 CANONICAL_NAME = "MLD_Armature"
 BODY_NAME = "MLD_Body"
@@ -98,7 +98,7 @@ def create_canonical_armature(context, name: str = CANONICAL_NAME, *, location=(
 
 def add_body(armature_obj, collection, names, parents, heads, tails, name: str = BODY_NAME):
     """A low-poly mesh bound rigidly to the armature's bones (so renders show the figure)."""
-    from .body import body_geometry
+    from ..scene.body import body_geometry
 
     verts, faces, owners = body_geometry(names, parents, heads, tails)
     mesh = bpy.data.meshes.new(name)

@@ -8,10 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-try:  # inside the add-on package
-    from .retarget import RigRest
-except ImportError:  # pragma: no cover - imported as a top-level module
-    from retarget import RigRest  # type: ignore[no-redef]
+from mld_core.rig.retarget import RigRest
 
 
 def read_rig(obj) -> RigRest:

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import bpy
 
-from . import env, quality_ui, runtime
-from .operators import resolve_target
+from .. import env
+from ..ui import quality_panel as quality_ui
+from ..ui import runtime
+from ..ui.operators import resolve_target
 
 
 class MLD_PT_generate(bpy.types.Panel):
@@ -103,7 +105,7 @@ classes = (MLD_PT_generate,)
 
 
 def register():
-    from . import retarget_ui
+    from ..ui import retarget_panel as retarget_ui
 
     for cls in classes:
         bpy.utils.register_class(cls)
@@ -112,7 +114,7 @@ def register():
 
 
 def unregister():
-    from . import retarget_ui
+    from ..ui import retarget_panel as retarget_ui
 
     quality_ui.unregister()
     retarget_ui.unregister()

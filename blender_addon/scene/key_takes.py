@@ -22,8 +22,12 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-from . import bone_maps, keys, naming, posing, rig
-from .retarget_wiring import (
+from mld_core.rig import bone_maps
+from ..scene import write_action as keys
+from ..worker import naming
+from mld_core.rig import canonical_pose as posing
+from ..scene import canonical_armature as rig
+from mld_core.rig.keying import (
     RetargetSettings,
     canonical_map,
     detections,
@@ -61,7 +65,7 @@ def stored_map(obj):
     data = getattr(obj, "mld_retarget", None)
     if data is None or not any(row.bone for row in data.rows):
         return None
-    from .retarget_wiring import rows_to_map
+    from mld_core.rig.keying import rows_to_map
 
     return rows_to_map(data.rows, data.extras)
 
@@ -129,7 +133,7 @@ def apply_result(
     """
     import bpy
 
-    from . import rig_io
+    from ..scene import read_rig as rig_io
 
     options = options if options is not None else settings_of(scene)
     if obj is None or obj.type != "ARMATURE":
@@ -148,7 +152,7 @@ def apply_result(
     # 1. Compute every take's keys (nothing in the file changes yet).
     planned = []
     if through_keyedit:
-        from . import keyedit
+        from mld_core.rig import keyframes as keyedit
 
         rest = rig_io.read_rig(obj)
         if bone_map is None:

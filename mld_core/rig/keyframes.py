@@ -23,10 +23,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-try:  # inside the add-on package
-    from . import retarget as rt
-except ImportError:  # pragma: no cover - imported as a top-level module
-    import retarget as rt  # type: ignore[no-redef]
+from mld_core.rig import bone_maps as bm
+from mld_core.rig import retarget as rt
 
 _EPS = 1e-12
 HANDLE_FACTOR = 1.0 / 2.5614  # Blender: handle length = interval / 2.5614 for F-curve auto handles
@@ -669,11 +667,6 @@ def take_to_keys(
     ``bone_maps.BoneMap`` (or a plain joint -> bone dict). Raises ``bone_maps.BoneMapError`` (listing what is
     missing) before anything is computed when the map does not fit the rig, so the caller keys nothing.
     """
-    try:
-        from . import bone_maps as bm
-    except ImportError:  # pragma: no cover - imported as a top-level module
-        import bone_maps as bm  # type: ignore[no-redef]
-
     if not isinstance(bone_map, bm.BoneMap):
         bone_map = bm.BoneMap(dict(bone_map))
     bone_map.validate(rig.names)

@@ -5,10 +5,10 @@ from __future__ import annotations
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-from . import quality_ui
-from .retarget_wiring import DEFAULT_TOLERANCE_DEG, ROTATION_CHOICES
+from ..ui import quality_panel as quality_ui
+from mld_core.rig.keying import DEFAULT_TOLERANCE_DEG, ROTATION_CHOICES
 
-from .validation import MAX_STEPS, MAX_VARIANTS, SEED_MAX, model_limits
+from ..worker.validation import MAX_STEPS, MAX_VARIANTS, SEED_MAX, model_limits
 
 _LIMITS = model_limits()  # the bundled model's lengths (config.json only); another model's are checked on Generate
 

@@ -16,8 +16,10 @@ import bpy
 from bpy.props import BoolProperty, CollectionProperty, IntProperty, PointerProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
-from . import apply, bone_maps, rig
-from .retarget_wiring import detections, map_extras, map_problem, map_to_rows
+from ..scene import key_takes as apply
+from mld_core.rig import bone_maps
+from ..scene import canonical_armature as rig
+from mld_core.rig.keying import detections, map_extras, map_problem, map_to_rows
 
 
 # -- data -------------------------------------------------------------------------------------------------------
@@ -103,7 +105,7 @@ def do_load_map(obj, path: str) -> tuple[str, str]:
 
 
 def _target(context):
-    from .operators import resolve_target
+    from ..ui.operators import resolve_target
 
     return resolve_target(context)
 
@@ -219,7 +221,7 @@ class MLD_PT_retarget(bpy.types.Panel):
     bl_category = "MLD"
 
     def draw(self, context):
-        from .panels import _wrap
+        from ..ui.panels import _wrap
 
         layout = self.layout
         settings = getattr(context.scene, "mld_motion", None)
