@@ -63,10 +63,9 @@ def main(argv=None) -> int:
 
     import blender_addon
     from blender_addon import env
-    from blender_addon.scene import write_action as keys
-    from mld_core.rig import canonical_pose as posing
-    from blender_addon.scene import canonical_armature as rig
+    from blender_addon.scene import canonical_armature, read_rig, write_action
     from blender_addon.ui import runtime
+    from mld_core.rig import keying
 
     model_dir = args.model
     note = ""
@@ -83,7 +82,7 @@ def main(argv=None) -> int:
     try:
         scene = bpy.context.scene
         scene.render.fps = args.fps
-        obj = rig.create_canonical_armature(bpy.context, body=False)
+        obj = canonical_armature.create_canonical_armature(bpy.context, body=False)
         scene.mld_motion.target = obj
         s = scene.mld_motion
         s.prompt, s.seconds, s.steps, s.seed = "a person walks forward and waves with the right hand", args.seconds, args.steps, 0
@@ -108,19 +107,24 @@ def main(argv=None) -> int:
         feats = out.features[0, :n]
         rot_med, _ = median_time(lambda: features_to_rotations(feats), args.repeat, "rotations")
         quats, _root = features_to_rotations(feats)
-        rest = rig.rig_rest(obj)
+        rest = read_rig.read_rig(obj)
         fps = scene.render.fps / scene.render.fps_base
-        pose_med, _ = median_time(
-            lambda: posing.pose_channels(quats, out.joints[0, :n], rest, dst_fps=fps), args.repeat, "pose"
-        )
-        channels = posing.pose_channels(quats, out.joints[0, :n], rest, dst_fps=fps)
+        take = keying.Take(out.joints[0, :n], quats, None, 20)
+        bone_map = keying.canonical_map(rest.names)
+        settings = keying.RetargetSettings()
+
+        def plan():
+            return keying.take_keys(take, rest, bone_map, settings, fps=fps, frame_start=1, exact=True)
+
+        pose_med, _ = median_time(plan, args.repeat, "pose")
+        keys = plan()
         created = []
 
         def write():
-            created.append(keys.channels_to_action(obj, channels, "bench", assign=False))
+            created.append(write_action.keys_to_action(obj, keys, "bench", assign=False))
 
         key_med, key_min = median_time(write, max(args.repeat, 10), "keys")
-        n_keys = channels.frames * (4 * 22 + 3 * len(channels.keyed_locations))
+        n_keys = keys.num_keys
         for action in created:
             bpy.data.actions.remove(action)
     finally:

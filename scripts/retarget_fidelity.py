@@ -98,11 +98,11 @@ def build_rigs(bpy, *, bvh_rig: Path, rigify_generated: bool) -> dict:
 
 def write_action(bpy, obj, baked, name: str, pose_properties=None):
     """Key ``baked`` (keyedit.BakedKeys) onto ``obj`` as a new assigned Action with the add-on's own writer
-    (``keys.baked_to_action``: bulk keys, AUTO_CLAMPED handles, auto_smoothing NONE, rotation modes, pose
+    (``write_action.keys_to_action``: bulk keys, AUTO_CLAMPED handles, auto_smoothing NONE, rotation modes, pose
     properties)."""
     from blender_addon.scene import write_action as keys
 
-    return keys.baked_to_action(obj, baked, name, assign=True, pose_properties=pose_properties or {})
+    return keys.keys_to_action(obj, baked, name, assign=True, pose_properties=pose_properties or {})
 
 
 def blender_joint_positions(bpy, obj, joints_to_bones: dict, frames) -> dict:

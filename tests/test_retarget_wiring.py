@@ -13,6 +13,7 @@ import pytest
 from mld_core.rig import bone_maps as bm
 from mld_core.rig import keyframes as ke
 from mld_core.rig import retarget as rt
+from mld_core.rig import bone_map_rows as map_rows
 from mld_core.rig import keying as rw
 from mld_core.motion.skeleton import JOINT_NAMES
 
@@ -73,30 +74,30 @@ def test_which_rigs_go_through_keyedit(canonical, opts, modes, expected):
 
 def test_map_rows_round_trip_keeps_extras(fixtures, rigify_metarig):
     det = bm.detect_bone_map(rigify_metarig.names, list(rigify_metarig.parents))
-    rows = rw.map_to_rows(det.bone_map)
+    rows = map_rows.map_to_rows(det.bone_map)
     assert [r.joint for r in rows] == list(JOINT_NAMES)
     assert {r.joint for r in rows if r.required} == set(bm.REQUIRED_JOINTS)
     assert all(r.bone for r in rows)
-    extras = rw.map_extras(det.bone_map)
-    back = rw.rows_to_map(rows, extras)
+    extras = map_rows.map_extras(det.bone_map)
+    back = map_rows.rows_to_map(rows, extras)
     assert back.joints == det.bone_map.joints and back.source == "rigify_metarig"
     # Rigify's generated rig: its pose properties (IK/FK switches) and parent overrides survive the panel
     rigify = rt.RigRest.load(fixtures / "rigs" / "rigify.json")
     gen = bm.detect_bone_map(rigify.names, list(rigify.parents)).bone_map
     assert gen.pose_properties and gen.parent_overrides
-    back = rw.rows_to_map(rw.map_to_rows(gen), rw.map_extras(gen))
+    back = map_rows.rows_to_map(map_rows.map_to_rows(gen), map_rows.map_extras(gen))
     assert back.pose_properties == gen.pose_properties and back.parent_overrides == gen.parent_overrides
-    assert json.loads(rw.map_extras(gen))["format"] == rw.MAP_FORMAT
+    assert json.loads(map_rows.map_extras(gen))["format"] == map_rows.MAP_FORMAT
 
 
 def test_rows_from_pairs_drop_empty_bones_and_stale_overrides():
     extras = json.dumps({"source": "user", "parent_overrides": {"Arm": "Clavicle", "Gone": "X"}, "pose_properties": {}})
-    m = rw.rows_to_map([("pelvis", "Hips"), ("left_shoulder", "Arm"), ("left_knee", "")], extras)
+    m = map_rows.rows_to_map([("pelvis", "Hips"), ("left_shoulder", "Arm"), ("left_knee", "")], extras)
     assert m.joints == {"pelvis": "Hips", "left_shoulder": "Arm"} and m.parent_overrides == {"Arm": "Clavicle"}
-    assert rw.rows_to_map([("pelvis", "Hips")], "{broken").source == "user"  # bad extras: a plain map
-    assert rw.map_to_rows(None)[0] == rw.MapRow("pelvis", "", True)
+    assert map_rows.rows_to_map([("pelvis", "Hips")], "{broken").source == "user"  # bad extras: a plain map
+    assert map_rows.map_to_rows(None)[0] == map_rows.MapRow("pelvis", "", True)
     with pytest.raises(bm.BoneMapError, match="unknown joint"):
-        rw.rows_to_map([("tail", "Tail")])
+        map_rows.rows_to_map([("tail", "Tail")])
 
 
 def test_missing_required_bones_are_named(rigify_metarig):

@@ -35,20 +35,6 @@ def is_canonical(obj) -> bool:
     return obj is not None and obj.type == "ARMATURE" and not missing_bones(obj)
 
 
-def rig_rest(obj) -> posing.RigRest:
-    """The rest state of an armature that has the canonical bones (armature space)."""
-    from mld_core.motion.skeleton import PARENTS
-
-    names = canonical_names()
-    bones = obj.data.bones
-    missing = [n for n in names if n not in bones]
-    if missing:
-        raise ValueError(f"armature {obj.name!r} lacks the bones {', '.join(missing)}")
-    heads = np.array([bones[n].head_local[:] for n in names], np.float64)
-    mats = np.array([[row[:3] for row in bones[n].matrix_local.to_3x3()] for n in names], np.float64)
-    return posing.RigRest(names, tuple(int(p) for p in PARENTS), heads, mats)
-
-
 def _ensure_object_mode(context) -> None:
     obj = context.view_layer.objects.active
     if obj is not None and obj.mode != "OBJECT":

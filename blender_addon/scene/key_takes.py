@@ -1,20 +1,13 @@
 """Generated takes -> Actions on an armature (bpy; main thread only).
 
-``apply_result(obj, result, scene, ...)`` is the one function the operator (interactive and headless) and
-the batch script share: one new Action per take, named from prompt and seed, keyed in bulk at the scene's
-frame rate from the scene's start frame, provenance stored as custom properties; the first take is assigned
-(or every take goes onto its own NLA track with "Push to NLA").
+``apply_result(obj, result, scene, ...)`` is what the operator (interactive and headless) and the batch script
+call: one new Action per take, named from prompt and seed, keyed in bulk at the scene's frame rate from its start
+frame, provenance stored as custom properties; the first take is assigned (or each goes onto its own NLA track).
 
-Two paths:
-
-* the canonical armature (the model's 22 bones): ``posing.pose_channels``, quaternion keys on every frame,
-  optionally bone offsets so every joint lands exactly on the generated position;
-* any other humanoid rig, and the canonical armature when key reduction, Euler rotations or foot locking is
-  asked for: ``rig_io.read_rig`` -> the armature's bone map (the one stored on it by the Retarget panel, else
-  the detected one) -> ``keyedit.take_to_keys`` -> ``keys.baked_to_action``. Keys go on mapped bones only.
-
-Every take is computed before the first Action is created: a map that lacks required bones (or any other
-problem) raises ValueError with a message and keys nothing.
+One road for every rig: ``read_rig.read_rig`` (the rest as arrays) + the armature's bone map (stored by the
+Retarget panel, else detected; the identity on the canonical armature) + the options -> ``keying.take_keys``
+(bpy-free) -> one ``keyframes.BakedKeys`` per take -> ``write_action.keys_to_action``. Every take is computed before
+the first Action is created: a map that lacks required bones raises ValueError with a message and keys nothing.
 """
 
 from __future__ import annotations
@@ -23,19 +16,20 @@ import time
 from dataclasses import dataclass, field
 
 from mld_core.rig import bone_maps
-from ..scene import write_action as keys
-from ..worker import naming
-from mld_core.rig import canonical_pose as posing
-from ..scene import canonical_armature as rig
 from mld_core.rig.keying import (
     RetargetSettings,
+    Take,
     canonical_map,
     detections,
+    exact_road,
     map_problem,
     missing_message,
     take_contacts,
-    uses_keyedit,
+    take_keys,
 )
+
+from ..worker import naming
+from . import canonical_armature, read_rig, write_action
 
 
 @dataclass
@@ -65,7 +59,7 @@ def stored_map(obj):
     data = getattr(obj, "mld_retarget", None)
     if data is None or not any(row.bone for row in data.rows):
         return None
-    from mld_core.rig.keying import rows_to_map
+    from mld_core.rig.bone_map_rows import rows_to_map
 
     return rows_to_map(data.rows, data.extras)
 
@@ -103,7 +97,7 @@ def check_target(obj) -> str:
     locked = not_editable(obj)
     if locked:
         return locked
-    if rig.is_canonical(obj):
+    if canonical_armature.is_canonical(obj):
         return ""
     return map_problem(bone_map_of(obj), obj.data.bones.keys(), obj.name)
 
@@ -114,121 +108,84 @@ def settings_of(scene) -> RetargetSettings:
 
 
 # -- keying -----------------------------------------------------------------------------------------------------
-def apply_result(
-    obj,
-    result,
-    scene,
-    *,
-    exact: bool = True,
-    set_frame_range: bool = False,
-    assign: bool = True,
-    options: RetargetSettings | None = None,
-    bone_map=None,
-) -> ApplyReport:
+def apply_result(obj, result, scene, *, exact: bool = True, set_frame_range: bool = False, assign: bool = True,
+                 options: RetargetSettings | None = None, bone_map=None) -> ApplyReport:
     """Key every take of ``result`` (a generation.GenerationResult) onto ``obj`` as new Actions.
 
+    exact: on the canonical armature, key every bone's location too (each joint exactly on the generated one);
     options: how to key (reduction, rotation mode, foot lock, NLA); default: the scene's panel settings.
     bone_map: a ``bone_maps.BoneMap`` to use instead of the armature's own (stored or detected).
     Raises ValueError (nothing keyed, no Action created) when the armature cannot take the motion.
     """
-    import bpy
-
-    from ..scene import read_rig as rig_io
-
     options = options if options is not None else settings_of(scene)
     if obj is None or obj.type != "ARMATURE":
         raise ValueError(check_target(obj))
-    canonical = rig.is_canonical(obj)
-    modes = rig_io.rotation_modes(obj)
-    through_keyedit = bone_map is not None or uses_keyedit(canonical, options, modes)
-    if not through_keyedit:
+    problem = not_editable(obj)
+    if problem:
+        raise ValueError(problem)
+    report = ApplyReport(fps=scene_fps(scene), nla=options.nla)
+    planned, bone_map = plan_keys(obj, result, scene, options, bone_map, exact, report)
+    write_keys(obj, planned, bone_map, options, exact, scene.frame_start, assign, report)
+    panel = getattr(scene, "mld_motion", None)
+    if panel is not None and hasattr(panel, "last_reduction"):
+        panel.last_reduction = report.reduction_ratio if report.retargeted and options.reduce else 1.0
+    if set_frame_range and report.frames:
+        scene.frame_end = scene.frame_start + report.frames - 1
+    return report
+
+
+def plan_keys(obj, result, scene, options: RetargetSettings, bone_map, exact: bool, report: ApplyReport):
+    """Every take's keys, computed before anything in the file changes: ([(take, keys, seconds)], bone map)."""
+    canonical = canonical_armature.is_canonical(obj)
+    modes = read_rig.rotation_modes(obj)
+    on_exact_road = exact_road(canonical, bone_map is not None, options, modes)
+    if on_exact_road:
         problem = check_target(obj)
         if problem:
             raise ValueError(problem)
-    fps = scene_fps(scene)
-    start = scene.frame_start
-    report = ApplyReport(fps=fps, retargeted=through_keyedit, nla=options.nla)
-
-    # 1. Compute every take's keys (nothing in the file changes yet).
+    rest = read_rig.read_rig(obj)
+    if bone_map is None:
+        bone_map = canonical_map(rest.names) if canonical and stored_map(obj) is None else bone_map_of(obj)
+    report.retargeted = not on_exact_road
+    report.bone_map = bone_map.source if report.retargeted else ""
     planned = []
-    if through_keyedit:
-        from mld_core.rig import keyframes as keyedit
-
-        rest = rig_io.read_rig(obj)
-        if bone_map is None:
-            bone_map = canonical_map(rest.names) if canonical and stored_map(obj) is None else bone_map_of(obj)
-        report.bone_map = bone_map.source
+    for take in result.takes:
+        t0 = time.perf_counter()
+        contacts = take_contacts(take) if options.foot_lock else None
+        road_take = Take(take.joints, take.local_quats, contacts, take.fps)
         try:
-            bone_map.validate(rest.names)
+            keys = take_keys(road_take, rest, bone_map, options, fps=report.fps, frame_start=scene.frame_start,
+                             exact=on_exact_road, current_modes=modes, exact_locations=exact)
         except bone_maps.BoneMapError as exc:
             raise ValueError(missing_message(exc, obj.name)) from None
-        bake = options.bake_options(fps, start)
-        per_bone = options.rotation_modes(modes, bone_map.joints.values())
-        for take in result.takes:
-            t0 = time.perf_counter()
-            contacts = take_contacts(take) if options.foot_lock else None
-            if options.foot_lock and contacts is None:
-                raise ValueError("Foot Lock needs a take of at least 2 frames; nothing was keyed")
-            try:
-                baked, _ = keyedit.take_to_keys(
-                    take.joints, rest, bone_map, bake_options=bake, contacts=contacts,
-                    rotation_modes=per_bone, fps=take.fps,
-                )
-            except bone_maps.BoneMapError as exc:
-                raise ValueError(missing_message(exc, obj.name)) from None
-            planned.append((take, baked, time.perf_counter() - t0))
-    else:
-        rest = rig.rig_rest(obj)
-        for take in result.takes:
-            t0 = time.perf_counter()
-            channels = posing.pose_channels(take.local_quats, take.joints, rest, src_fps=take.fps, dst_fps=fps, exact=exact)
-            planned.append((take, channels, time.perf_counter() - t0))
+        planned.append((take, keys, time.perf_counter() - t0))
+    return planned, bone_map
 
-    # 2. Write them.
+
+def write_keys(obj, planned, bone_map, options: RetargetSettings, exact: bool, start: int, assign: bool,
+               report: ApplyReport) -> None:
+    """One Action per planned take, through the one writer; fills ``report``."""
+    import bpy
+
     existing = {a.name for a in bpy.data.actions}
-    for index, (take, keyed, seconds) in enumerate(planned):
+    for index, (take, keys, seconds) in enumerate(planned):
         t0 = time.perf_counter()
         name = naming.unique_name(take.name or naming.action_name(take.prompt, take.seed), existing)
         existing.add(name)
         props = take.provenance()
-        props["mld_scene_fps"] = float(fps)
-        props["mld_exact"] = int(bool(exact) and not through_keyedit)
-        props["mld_retargeted"] = int(through_keyedit)
-        first = assign and index == 0
-        if through_keyedit:
-            props.update(
-                mld_bone_map=bone_map.source,
-                mld_reduce=int(options.reduce),
-                mld_tolerance_deg=float(options.tolerance_deg),
-                mld_rotation_mode=options.rotation_mode,
-                mld_foot_lock=int(options.foot_lock),
-                mld_keys=int(keyed.num_keys),
-                mld_reduction_ratio=float(keyed.stats["reduction_ratio"]),
-            )
-            action = keys.baked_to_action(
-                obj, keyed, name, assign=first, nla=options.nla, properties=props,
-                pose_properties=bone_map.pose_properties,
-            )
-            frames, n_keys = keyed.num_frames, keyed.num_keys
-            report.reduction_ratios.append(float(keyed.stats["reduction_ratio"]))
-        else:
-            action = keys.channels_to_action(
-                obj, keyed, name, frame_start=start, assign=first and not options.nla, properties=props
-            )
-            if options.nla:
-                keys.push_to_nla(obj, action, keys.action_slot(action), start)
-            frames = keyed.frames
-            n_keys = keyed.frames * (4 * len(keyed.names) + 3 * len(keyed.keyed_locations))
-            report.reduction_ratios.append(1.0)
+        props.update(mld_scene_fps=float(report.fps), mld_exact=int(bool(exact) and not report.retargeted),
+                     mld_retargeted=int(report.retargeted))
+        if report.retargeted:
+            props.update(mld_bone_map=bone_map.source, mld_reduce=int(options.reduce),
+                         mld_tolerance_deg=float(options.tolerance_deg), mld_rotation_mode=options.rotation_mode,
+                         mld_foot_lock=int(options.foot_lock), mld_keys=int(keys.num_keys),
+                         mld_reduction_ratio=float(keys.stats["reduction_ratio"]))
+        action = write_action.keys_to_action(
+            obj, keys, name, assign=assign and index == 0, nla=options.nla, properties=props,
+            pose_properties=bone_map.pose_properties if report.retargeted else {})
+        report.reduction_ratios.append(float(keys.stats.get("reduction_ratio", 1.0)))
         report.key_seconds += seconds + time.perf_counter() - t0
         report.actions.append(action.name)
-        report.keys += n_keys
+        report.keys += keys.num_keys
         if index == 0:
-            report.frames = frames
-    panel = getattr(scene, "mld_motion", None)
-    if panel is not None and hasattr(panel, "last_reduction"):
-        panel.last_reduction = report.reduction_ratio if through_keyedit and options.reduce else 1.0
-    if set_frame_range and report.frames:
-        scene.frame_start = start
-        scene.frame_end = start + report.frames - 1
-    return report
+            report.frames = keys.num_frames

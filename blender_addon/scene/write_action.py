@@ -14,7 +14,6 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
-from mld_core.rig.canonical_pose import BoneChannels
 
 
 def slotted_actions() -> bool:
@@ -121,41 +120,6 @@ def _new_action(obj, bones, name: str, properties: dict | None):
     return action
 
 
-def channels_to_action(
-    obj,
-    channels: BoneChannels,
-    name: str,
-    *,
-    frame_start: int = 1,
-    assign: bool = True,
-    properties: dict | None = None,
-    interpolation: str = "LINEAR",
-):
-    """A new Action holding ``channels`` for armature ``obj`` (keys from ``frame_start``), assigned if asked.
-
-    Pose bones keyed here are switched to quaternion rotation. Returns the Action.
-    """
-    pose_bones = obj.pose.bones
-    action = _new_action(obj, channels.names, name, properties)
-    writer = ChannelWriter(action, obj)
-    frames = frame_start + np.arange(channels.frames, dtype=np.float64)
-    keyed_loc = set(channels.keyed_locations)
-    for j, bone in enumerate(channels.names):
-        pose_bones[bone].rotation_mode = "QUATERNION"
-        base = f'pose.bones["{bone}"]'
-        if j in keyed_loc:
-            for i in range(3):
-                write_keys(writer.fcurve(base + ".location", i, bone), frames, channels.locations[:, j, i], interpolation)
-        for i in range(4):
-            write_keys(
-                writer.fcurve(base + ".rotation_quaternion", i, bone), frames, channels.quaternions[:, j, i], interpolation
-            )
-    if assign:
-        keep_previous_action(obj)
-        writer.assign()
-    return action
-
-
 def set_pose_properties(obj, pose_properties: dict) -> list[str]:
     """Set a bone map's ``pose_properties`` (e.g. Rigify's IK_FK = 1.0) on the pose bones; returns what was set."""
     done = []
@@ -180,7 +144,7 @@ def push_to_nla(obj, action, slot, frame_start: float):
     return strip
 
 
-def baked_to_action(
+def keys_to_action(
     obj,
     baked,
     name: str,
@@ -190,7 +154,7 @@ def baked_to_action(
     properties: dict | None = None,
     pose_properties: dict | None = None,
 ):
-    """A new Action holding ``baked`` (``keyedit.BakedKeys``: mapped bones only) for armature ``obj``.
+    """A new Action holding ``baked`` (``keyframes.BakedKeys``, the one keys object of every rig) for ``obj``.
 
     Sets each keyed pose bone's rotation mode (``baked.rotation_modes``) and the bone map's ``pose_properties``;
     with ``nla`` the Action goes onto a new NLA track as a strip (the active Action is left alone), otherwise it

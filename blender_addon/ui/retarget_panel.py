@@ -19,7 +19,8 @@ from bpy_extras.io_utils import ExportHelper, ImportHelper
 from ..scene import key_takes as apply
 from mld_core.rig import bone_maps
 from ..scene import canonical_armature as rig
-from mld_core.rig.keying import detections, map_extras, map_problem, map_to_rows
+from mld_core.rig.bone_map_rows import map_extras, map_to_rows
+from mld_core.rig.keying import detections, map_problem
 
 
 # -- data -------------------------------------------------------------------------------------------------------

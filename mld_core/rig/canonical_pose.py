@@ -306,3 +306,36 @@ def evaluate_pose(channels: BoneChannels, rest: RigRest) -> np.ndarray:
             local_point = loc[:, j] @ B[j].T + (heads[j] - heads[p])
             pose_head[:, j] = pose_head[:, p] + np.einsum("fij,fj->fi", A, local_point)
     return pose_head
+
+
+def canonical_rest(rig) -> RigRest:
+    """The canonical bones of ``rig`` (a ``retarget.RigRest`` read from an armature that has them), in skeleton
+    order: heads and rest rotations in armature space."""
+    from mld_core.motion.skeleton import JOINT_NAMES, PARENTS
+
+    missing = [n for n in JOINT_NAMES if n not in rig]
+    if missing:
+        raise ValueError(f"armature {rig.name!r} lacks the bones {', '.join(missing)}")
+    idx = [rig.index(n) for n in JOINT_NAMES]
+    return RigRest(tuple(JOINT_NAMES), tuple(int(p) for p in PARENTS), rig.heads[idx].copy(),
+                   rig.matrices[idx, :3, :3].copy())
+
+
+def channels_to_keys(channels: BoneChannels, frame_start: float):
+    """The exact pose as the one keys object (``keyframes.BakedKeys``): a LINEAR key on every frame, quaternion
+    rotations, per bone its location curves (when keyed) then its rotation curves."""
+    from mld_core.rig.keyframes import BakedKeys, CurveKeys
+
+    frames = frame_start + np.arange(channels.frames, dtype=np.float64)
+    keyed = set(channels.keyed_locations)
+    curves = []
+    for j, bone in enumerate(channels.names):
+        base = f'pose.bones["{bone}"]'
+        if j in keyed:
+            curves += [CurveKeys(base + ".location", i, bone, frames, channels.locations[:, j, i]) for i in range(3)]
+        curves += [CurveKeys(base + ".rotation_quaternion", i, bone, frames, channels.quaternions[:, j, i])
+                   for i in range(4)]
+    return BakedKeys(curves, fps=channels.fps, frame_start=float(frame_start), num_frames=channels.frames,
+                     interpolation="LINEAR", handle_type=None, auto_smoothing=None,
+                     rotation_modes={bone: "QUATERNION" for bone in channels.names},
+                     stats={"reduction_ratio": 1.0})

@@ -393,10 +393,10 @@ class BakedKeys:
     frame_start: float
     num_frames: int
     interpolation: str = "BEZIER"
-    handle_type: str = "AUTO_CLAMPED"
+    handle_type: str | None = "AUTO_CLAMPED"  # None: leave the handles Blender gives new keys
     rotation_mode: str = "QUATERNION"
     stats: dict = field(default_factory=dict)
-    auto_smoothing: str = "NONE"  # set fcurve.auto_smoothing to this (Blender 5.0 defaults new curves to CONT_ACCEL)
+    auto_smoothing: str | None = "NONE"  # fcurve.auto_smoothing to set (Blender 5.0 gives new curves CONT_ACCEL); None: keep
     euler_orders: dict = field(default_factory=dict)  # bone -> Euler order, for bones keyed with Euler curves
     rotation_modes: dict = field(default_factory=dict)  # bone -> rotation mode to set on the pose bone
 

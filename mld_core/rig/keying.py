@@ -1,30 +1,25 @@
-"""Generate -> any humanoid rig: the plain decisions between the panel, the batch script and ``keyedit`` (no bpy).
+"""One road from a take to the keys of one rig (numpy only): the user's keying options, and
+:func:`take_keys`: joints (T, 22, 3) + rig rest + bone map + options -> one :class:`keyframes.BakedKeys`.
 
-What lives here (all plain Python, tested by ``tests/test_retarget_wiring.py``):
-
-* :class:`RetargetSettings`: the user's options (Reduce Keys + tolerance, Rotation, Foot Lock, Push to NLA) and
-  how they become ``keyedit.BakeOptions`` and per-bone rotation modes;
-* :func:`uses_keyedit`: the canonical armature keeps its exact path (rotations + bone offsets, every joint on
-  the generated position) unless the user asks for key reduction, Euler rotations or foot locking;
-* the per-armature bone map as panel rows (``canonical joint -> bone``, required joints marked) and back
-  (:func:`map_to_rows`, :func:`rows_to_map`), and as the JSON kept beside the rows (parent overrides, pose
-  properties, source);
-* :func:`map_problem`: one sentence naming the required joints without a bone (or bones not in the rig), used by
-  the Generate button's poll and by ``apply``; :class:`DetectionCache` so the poll never re-runs detection for
-  a rig whose bones did not change;
-* :func:`take_contacts`: a take's HumanML3D foot contacts (its own, or recomputed from its joints).
+The canonical armature is a rig like any other (its bone map is the identity); only its *exact* option differs:
+while the user asks for no key reduction, no Euler and no foot lock, every bone gets a rotation and a location
+key on every frame so each joint lands exactly on the generated position (``canonical_pose``). Everything else
+goes through the retarget solve and ``keyframes`` (resample, foot lock, reduction, rotation modes).
+Also here: :func:`map_problem` (one sentence naming missing bones, for polls and errors), a detection cache, and
+:func:`take_contacts`.
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
 from mld_core.rig import bone_maps as bm
+from mld_core.rig import canonical_pose
 from mld_core.rig import keyframes as ke
+from mld_core.rig.retarget import RigRest
 
 # (identifier, label, description) for the panel's Rotation menu; "KEEP" keeps each bone's current mode.
 ROTATION_CHOICES = (
@@ -39,7 +34,6 @@ ROTATION_CHOICES = (
 )
 ROTATION_IDS = tuple(c[0] for c in ROTATION_CHOICES)
 DEFAULT_TOLERANCE_DEG = 0.5
-MAP_FORMAT = "mld-bone-map/1"
 
 
 @dataclass(frozen=True)
@@ -113,64 +107,6 @@ def uses_keyedit(canonical: bool, settings: RetargetSettings, current_modes: Map
     if settings.rotation_mode == "KEEP":
         return any(m in ke.EULER_ORDERS for m in (current_modes or {}).values())
     return settings.rotation_mode != "QUATERNION"
-
-
-# --------------------------------------------------------------------------------------------------------------
-# The bone map as panel rows (one per canonical joint) + JSON extras.
-
-
-@dataclass(frozen=True)
-class MapRow:
-    joint: str
-    bone: str  # '' when unmapped
-    required: bool
-
-
-def joint_names() -> tuple[str, ...]:
-    from mld_core.motion.skeleton import JOINT_NAMES
-
-    return tuple(JOINT_NAMES)
-
-
-def map_to_rows(bone_map: bm.BoneMap | None) -> list[MapRow]:
-    """One row per canonical joint, in skeleton order; unmapped joints get ''."""
-    joints = bone_map.joints if bone_map is not None else {}
-    return [MapRow(j, joints.get(j, ""), j in bm.REQUIRED_JOINTS) for j in joint_names()]
-
-
-def map_extras(bone_map: bm.BoneMap) -> str:
-    """What the rows do not hold (source, parent overrides, pose properties) as a JSON string."""
-    return json.dumps(
-        {
-            "format": MAP_FORMAT,
-            "source": bone_map.source,
-            "parent_overrides": dict(bone_map.parent_overrides),
-            "pose_properties": {b: dict(p) for b, p in bone_map.pose_properties.items()},
-        },
-        sort_keys=True,
-    )
-
-
-def rows_to_map(rows: Iterable, extras: str = "") -> bm.BoneMap:
-    """A BoneMap from rows (anything with ``.joint`` and ``.bone``, or (joint, bone) pairs) and the extras JSON.
-    Overrides and pose properties of bones no longer in the map are dropped."""
-    joints = {}
-    for row in rows:
-        joint, bone = (row.joint, row.bone) if hasattr(row, "joint") else (row[0], row[1])
-        if bone:
-            joints[str(joint)] = str(bone)
-    data = {}
-    if extras:
-        try:
-            data = json.loads(extras)
-        except json.JSONDecodeError:
-            data = {}
-        if not isinstance(data, dict):
-            data = {}
-    used = set(joints.values())
-    overrides = {c: p for c, p in dict(data.get("parent_overrides", {})).items() if c in used}
-    props = {b: dict(p) for b, p in dict(data.get("pose_properties", {})).items()}
-    return bm.BoneMap(joints, source=str(data.get("source", "user")), parent_overrides=overrides, pose_properties=props)
 
 
 def map_problem(bone_map: bm.BoneMap, bone_names: Iterable[str], rig_name: str = "") -> str:
@@ -248,3 +184,46 @@ def _pad(c: np.ndarray, n: int) -> np.ndarray:
     if len(c) >= n:
         return c[:n]
     return np.concatenate([c, np.repeat(c[-1:], n - len(c), axis=0)], 0)  # features have T-1 rows
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The road.
+
+
+@dataclass(frozen=True)
+class Take:
+    """What the road needs of a generated take: joints (T, 22, 3) metres Y up, the canonical skeleton's local
+    rotations (T, 22, 4) w-first, foot contacts (T, 4) or None, and its frame rate."""
+
+    joints: np.ndarray
+    local_quats: np.ndarray
+    contacts: np.ndarray | None
+    fps: float
+
+
+def exact_road(canonical: bool, bone_map_given: bool, settings: RetargetSettings,
+               current_modes: Mapping[str, str] | None = None) -> bool:
+    """Whether the canonical armature's exact option applies (see the module docstring)."""
+    return canonical and not bone_map_given and not uses_keyedit(True, settings, current_modes)
+
+
+def take_keys(take: Take, rig: RigRest, bone_map: bm.BoneMap, settings: RetargetSettings, *, fps: float,
+              frame_start: float, exact: bool = False, current_modes: Mapping[str, str] | None = None,
+              exact_locations: bool = True) -> ke.BakedKeys:
+    """The keys that put ``rig`` on ``take`` at scene rate ``fps`` from ``frame_start``.
+
+    ``exact``: the canonical armature's exact option (``rig`` must have the canonical bones); ``exact_locations``
+    keys every bone's location there (else only the root's). Raises ``bone_maps.BoneMapError`` when the map
+    does not fit the rig (nothing computed), ValueError for a foot lock on a one-frame take.
+    """
+    if exact:
+        channels = canonical_pose.pose_channels(take.local_quats, take.joints, canonical_pose.canonical_rest(rig),
+                                                src_fps=take.fps, dst_fps=fps, exact=exact_locations)
+        return canonical_pose.channels_to_keys(channels, frame_start)
+    if settings.foot_lock and take.contacts is None:
+        raise ValueError("Foot Lock needs a take of at least 2 frames; nothing was keyed")
+    per_bone = settings.rotation_modes(current_modes or {}, bone_map.joints.values())
+    baked, _ = ke.take_to_keys(take.joints, rig, bone_map, bake_options=settings.bake_options(fps, frame_start),
+                               contacts=take.contacts if settings.foot_lock else None, rotation_modes=per_bone,
+                               fps=take.fps)
+    return baked
