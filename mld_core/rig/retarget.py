@@ -695,6 +695,23 @@ def twist_reference(joint: str, p: Mapping[str, np.ndarray], rest: bool) -> tupl
     return None
 
 
+def check_bone_map(bone_map: Mapping[str, str], rig: RigRest) -> dict[str, str]:
+    """The map's non-empty entries, checked against the canonical joints and the rig (RetargetError)."""
+    bone_map = {j: b for j, b in bone_map.items() if b}
+    unknown = [j for j in bone_map if j not in JOINT_INDEX]
+    if unknown:
+        raise RetargetError(f"bone map names unknown joints: {', '.join(unknown)}")
+    missing = [j for j in REQUIRED_JOINTS if j not in bone_map]
+    if missing:
+        raise RetargetError(f"bone map is missing required joints: {', '.join(missing)}")
+    absent = [b for b in bone_map.values() if b not in rig]
+    if absent:
+        raise RetargetError(f"the armature has no bones named: {', '.join(absent)}")
+    if len(set(bone_map.values())) != len(bone_map):
+        raise RetargetError("bone map uses a bone for more than one joint")
+    return bone_map
+
+
 def retarget(
     joints: np.ndarray,
     rig: RigRest,
@@ -711,178 +728,182 @@ def retarget(
     :meth:`RigRest.with_parents`). Unmapped bones stay at rest.
     """
     options = options or RetargetOptions()
-    joints = check_joints(joints)
-    bone_map = {j: b for j, b in bone_map.items() if b}
-    unknown = [j for j in bone_map if j not in JOINT_INDEX]
-    if unknown:
-        raise RetargetError(f"bone map names unknown joints: {', '.join(unknown)}")
-    missing = [j for j in REQUIRED_JOINTS if j not in bone_map]
-    if missing:
-        raise RetargetError(f"bone map is missing required joints: {', '.join(missing)}")
-    absent = [b for b in bone_map.values() if b not in rig]
-    if absent:
-        raise RetargetError(f"the armature has no bones named: {', '.join(absent)}")
-    if len(set(bone_map.values())) != len(bone_map):
-        raise RetargetError("bone map uses a bone for more than one joint")
-    rig = rig.with_parents(parent_overrides or {})
-
-    world, scale = place_source(joints, rig, bone_map, options)  # (T, 22, 3)
-    src = _to_armature(rig, world)  # (T, 22, 3) armature space
-    T = src.shape[0]
-    sp = {n: src[:, JOINT_INDEX[n]] for n in JOINT_NAMES}
-    sp_mapped = {j: sp[j] for j in bone_map}
-    rest_heads = rig.heads
-    rp = {j: rest_heads[rig.index(b)] for j, b in bone_map.items()}
-    min_length = 1e-3 * float(leg_length(rp))  # heads closer than this count as the same place
-
-    bone_of = dict(bone_map)
-    joint_of = {b: j for j, b in bone_of.items()}
-    mapped_idx = sorted((rig.index(b) for b in bone_of.values()), key=rig.order.index)
-    pelvis_idx = rig.index(bone_of["pelvis"])
-    pelvis_anc = set(rig.ancestors(pelvis_idx))
-    if any(i in pelvis_anc for i in mapped_idx):
-        raise RetargetError("the pelvis bone must not be below another mapped bone")
-
-    rest = rig.matrices
-    rest_inv = np.linalg.inv(rest)
-    up = normalize(np.linalg.inv(rig.object_matrix[:3, :3]) @ np.array([0.0, 0.0, 1.0]))  # world Z, armature space
-    units = scale / rig.world_scale()  # armature units per source metre
-    local_rot = {}  # bone index -> (T, 3, 3)
-    local_loc = {}  # bone index -> (T, 3)
-    pose_cache: dict[int, np.ndarray] = {}
-
-    def pose(b: int) -> np.ndarray:
-        """(T, 4, 4) posed armature-space matrix of bone b (ancestors must be solved already)."""
-        if b in pose_cache:
-            return pose_cache[b]
-        p = rig.parents[b]
-        base = rest[b] if p < 0 else pose(p) @ (rest_inv[p] @ rest[b])
-        m = np.broadcast_to(base, (T, 4, 4)).copy()
-        if b in local_loc:
-            m[:, :3, 3] += np.einsum("tij,tj->ti", m[:, :3, :3], local_loc[b])
-        if b in local_rot:
-            m[:, :3, :3] = m[:, :3, :3] @ local_rot[b]
-        pose_cache[b] = m
-        return m
-
-    def carried(b: int) -> np.ndarray:
-        """(T, 4, 4): where bone b's rest frame is carried by its posed parent (before its own transform)."""
-        p = rig.parents[b]
-        base = rest[b] if p < 0 else pose(p) @ (rest_inv[p] @ rest[b])
-        return np.broadcast_to(base, (T, 4, 4))
-
     if options.match not in ("effectors", "directions"):
         raise RetargetError(f"unknown match mode {options.match!r} (use 'effectors' or 'directions')")
-    desired: dict[str, np.ndarray] = {}  # joint -> (T, 3) where its head should go (armature space)
-    ik_chains = dict(LIMBS)  # two-bone chains: root joint -> (middle, end); the spine's last two added below
-    for b in mapped_idx:
-        name = rig.names[b]
-        joint = joint_of[name]
-        end = _segment_end(joint, bone_of, rp, min_length)
-        C = carried(b)
-        Crot = C[:, :3, :3]
-        head = C[:, :3, 3]
-        if options.match == "effectors" and joint in ik_chains:
-            mid, eff = ik_chains[joint]
-            if end == mid and _segment_end(mid, bone_of, rp, min_length) == eff:
-                upper = float(np.linalg.norm(rp[mid] - rp[joint]))
-                lower = float(np.linalg.norm(rp[eff] - rp[mid]))
-                if eff in desired:  # the spine's neck + head: the head's aim point is already known
-                    goal = desired[eff]
-                    pole = desired.get(mid, goal) - head
-                elif joint in ("left_hip", "right_hip"):
-                    # Feet go where the scaled source puts them (no sinking, no sliding); the leg bends to reach.
-                    goal = sp[eff]
-                    pole = sp[mid] - sp[joint]
-                else:
-                    # Hands relative to the shoulder, the source arm scaled to the rig's arm length.
-                    src_len = np.linalg.norm(sp[mid] - sp[joint], axis=-1) + np.linalg.norm(sp[eff] - sp[mid], axis=-1)
-                    k = (upper + lower) / np.maximum(src_len, _EPS)
-                    goal = head + k[:, None] * (sp[eff] - sp[joint])
-                    pole = sp[mid] - sp[joint]
-                desired[mid] = two_bone_middle(head, goal, upper, lower, pole)
-                desired[eff] = goal
-        if end is None:
-            local_rot[b] = np.tile(np.eye(3), (T, 1, 1))
-        else:
-            seg_rest = rest_heads[rig.index(bone_of[end])] - rest_heads[b]
-            v_local = rest[b, :3, :3].T @ normalize(seg_rest)
-            a = Crot @ v_local  # (T, 3)
-            if end in desired:
-                d = normalize(desired[end] - head)  # (T, 3)
-            else:
-                d = normalize(sp[end] - sp[joint])  # (T, 3)
-            if options.match == "effectors" and (joint, end) in _FEET:
-                # A fixed-length rig foot aimed along the source's ankle -> toe line digs its toe into the floor
-                # whenever the source's foot is shorter (generated joints do not keep bone lengths): while the
-                # source's toe is down, pitch the foot so the rig's toe stands exactly as high as the source's.
-                d = _toe_on_floor(d, head, sp[end], float(np.linalg.norm(seg_rest)), up, units)
-            ref = twist_reference(joint, sp_mapped, rest=False) if options.twist else None
-            fallback = None
-            if ref is not None:
-                fallback = ref[0]
-            W = rotation_between(a, d, fallback) @ Crot  # (T, 3, 3)
-            if ref is not None:
-                h_rest, _ = twist_reference(joint, rp, rest=True)
-                h_rest = h_rest - np.dot(h_rest, normalize(seg_rest)) * normalize(seg_rest)
-                if np.linalg.norm(h_rest) < 1e-6:
-                    h_rest = any_perpendicular(normalize(seg_rest))
-                h_local = rest[b, :3, :3].T @ normalize(h_rest)
-                h_cur = np.einsum("tij,j->ti", W, h_local)
-                h_src, weight = ref
-                h_src = h_src - np.sum(h_src * d, -1, keepdims=True) * d
-                weight = np.where(np.linalg.norm(h_src, axis=-1) < 1e-3, 0.0, weight)
-                theta = _twist_angles(h_cur, h_src, weight, d)
-                W = axis_angle_matrix(d, theta) @ W
-            if joint == "pelvis" and options.twist and options.match == "effectors":
-                # The hips' lateral axis decides the facing and where the legs hang: match it exactly, and the
-                # pelvis segment as closely as that allows.
-                lat_src = normalize(sp["left_hip"] - sp["right_hip"])
-                lat_rest = rest[b, :3, :3].T @ normalize(rp["left_hip"] - rp["right_hip"])
-                seg_local = v_local
-                F_rest = _frame(Crot @ lat_rest, Crot @ seg_local)
-                W = _frame(lat_src, d) @ np.swapaxes(F_rest, -1, -2) @ Crot
-            local_rot[b] = np.swapaxes(Crot, -1, -2) @ W
-        if b == pelvis_idx:
-            # Place the pelvis so that the rig's hip midpoint lands on the scaled source hips' midpoint.
-            local_loc[b] = np.zeros((T, 3))
-            pose_cache.clear()
-            left, right = rig.index(bone_of["left_hip"]), rig.index(bone_of["right_hip"])
-            hips_now = (pose(left)[:, :3, 3] + pose(right)[:, :3, 3]) / 2
-            hips_src = (sp["left_hip"] + sp["right_hip"]) / 2
-            local_loc[b] = np.einsum("tji,tj->ti", Crot, hips_src - hips_now)  # Crot^T @ delta
-            pose_cache.clear()
-            if options.match == "effectors":
-                # Spine, neck and head aim at the source's joints, relative to the pelvis, scaled to the rig's
-                # spine length (so the head lands where the source's does, whatever the spine's proportions).
-                chain = [joint]
-                while chain[-1] is not None and chain[-1] != "head":
-                    chain.append(_segment_end(chain[-1], bone_of, rp, min_length))
-                chain = [j for j in chain if j is not None]
-                if len(chain) >= 2:
-                    pairs = list(zip(chain[:-1], chain[1:]))
-                    l_rig = sum(float(np.linalg.norm(rp[y] - rp[x])) for x, y in pairs)
-                    l_src = sum(np.linalg.norm(sp[y] - sp[x], axis=-1) for x, y in pairs)
-                    k = (l_rig / np.maximum(l_src, _EPS))[:, None]
-                    base = pose(b)[:, :3, 3]
-                    for j in chain[1:]:
-                        desired[j] = base + k * (sp[j] - sp[joint])
-                    if len(chain) >= 4:  # e.g. chest -> neck -> head: a two-bone chain, so the head lands exactly
-                        ik_chains[chain[-3]] = (chain[-2], chain[-1])
-
-    rotations = np.stack([matrix_to_quat(local_rot[b]) for b in mapped_idx], axis=1)  # (T, K, 4)
-    rotations = quat_continuity(rotations)
+    joints = check_joints(joints)
+    bone_map = check_bone_map(bone_map, rig)
+    rig = rig.with_parents(parent_overrides or {})
+    world, scale = place_source(joints, rig, bone_map, options)  # (T, 22, 3)
+    solve = _Solve(rig, bone_map, _to_armature(rig, world), scale, options)
+    for b in solve.mapped_idx:  # parents before children
+        solve.pose_bone(b)
+    rotations = np.stack([matrix_to_quat(solve.local_rot[b]) for b in solve.mapped_idx], axis=1)  # (T, K, 4)
     return RetargetResult(
-        bones=[rig.names[b] for b in mapped_idx],
-        joints=[joint_of[rig.names[b]] for b in mapped_idx],
-        rotations=rotations,
-        root_bone=rig.names[pelvis_idx],
-        root_location=local_loc[pelvis_idx],
+        bones=[rig.names[b] for b in solve.mapped_idx],
+        joints=[solve.joint_of[rig.names[b]] for b in solve.mapped_idx],
+        rotations=quat_continuity(rotations),
+        root_bone=rig.names[solve.pelvis_idx],
+        root_location=solve.local_loc[solve.pelvis_idx],
         scale=scale,
         fps=float(fps),
         source_world=world,
         rig=rig,
     )
+
+
+class _Solve:
+    """The state of one retarget: the source in armature space, the rig's rest, and the pose found so far
+    (bones are solved parents first; a bone's posed matrix is cached until the pelvis moves)."""
+
+    def __init__(self, rig: RigRest, bone_map: dict[str, str], src: np.ndarray, scale: float,
+                 options: RetargetOptions):
+        self.rig, self.options = rig, options
+        self.T = src.shape[0]
+        self.sp = {n: src[:, JOINT_INDEX[n]] for n in JOINT_NAMES}  # source joints, armature space
+        self.sp_mapped = {j: self.sp[j] for j in bone_map}
+        self.rp = {j: rig.heads[rig.index(b)] for j, b in bone_map.items()}  # rest heads of mapped joints
+        self.min_length = 1e-3 * float(leg_length(self.rp))  # heads closer than this count as the same place
+        self.bone_of = dict(bone_map)
+        self.joint_of = {b: j for j, b in bone_map.items()}
+        self.mapped_idx = sorted((rig.index(b) for b in bone_map.values()), key=rig.order.index)
+        self.pelvis_idx = rig.index(bone_map["pelvis"])
+        if any(i in set(rig.ancestors(self.pelvis_idx)) for i in self.mapped_idx):
+            raise RetargetError("the pelvis bone must not be below another mapped bone")
+        self.rest = rig.matrices
+        self.rest_inv = np.linalg.inv(self.rest)
+        self.up = normalize(np.linalg.inv(rig.object_matrix[:3, :3]) @ np.array([0.0, 0.0, 1.0]))  # world Z
+        self.units = scale / rig.world_scale()  # armature units per source metre
+        self.local_rot: dict[int, np.ndarray] = {}  # bone index -> (T, 3, 3)
+        self.local_loc: dict[int, np.ndarray] = {}  # bone index -> (T, 3)
+        self.pose_cache: dict[int, np.ndarray] = {}
+        self.desired: dict[str, np.ndarray] = {}  # joint -> (T, 3) where its head should go (armature space)
+        self.ik_chains = dict(LIMBS)  # two-bone chains: root joint -> (middle, end); the spine's last two added
+
+    def pose(self, b: int) -> np.ndarray:
+        """(T, 4, 4) posed armature-space matrix of bone b (ancestors must be solved already)."""
+        if b in self.pose_cache:
+            return self.pose_cache[b]
+        m = np.broadcast_to(self._base(b), (self.T, 4, 4)).copy()
+        if b in self.local_loc:
+            m[:, :3, 3] += np.einsum("tij,tj->ti", m[:, :3, :3], self.local_loc[b])
+        if b in self.local_rot:
+            m[:, :3, :3] = m[:, :3, :3] @ self.local_rot[b]
+        self.pose_cache[b] = m
+        return m
+
+    def carried(self, b: int) -> np.ndarray:
+        """(T, 4, 4): where bone b's rest frame is carried by its posed parent (before its own transform)."""
+        return np.broadcast_to(self._base(b), (self.T, 4, 4))
+
+    def _base(self, b: int) -> np.ndarray:
+        p = self.rig.parents[b]
+        return self.rest[b] if p < 0 else self.pose(p) @ (self.rest_inv[p] @ self.rest[b])
+
+    def pose_bone(self, b: int) -> None:
+        """Solve bone b: its rotation (aim at its segment's end, twist), and for the pelvis its location."""
+        joint = self.joint_of[self.rig.names[b]]
+        end = _segment_end(joint, self.bone_of, self.rp, self.min_length)
+        C = self.carried(b)
+        Crot, head = C[:, :3, :3], C[:, :3, 3]
+        if self.options.match == "effectors" and joint in self.ik_chains:
+            self.plan_limb(joint, end, head)
+        if end is None:
+            self.local_rot[b] = np.tile(np.eye(3), (self.T, 1, 1))
+        else:
+            self.local_rot[b] = np.swapaxes(Crot, -1, -2) @ self.aim(b, joint, end, Crot, head)
+        if b == self.pelvis_idx:
+            self.place_pelvis(b, joint, Crot)
+
+    def plan_limb(self, joint: str, end: str | None, head: np.ndarray) -> None:
+        """Where a two-bone chain starting at ``joint`` puts its middle and end joints (``desired``)."""
+        sp, rp = self.sp, self.rp
+        mid, eff = self.ik_chains[joint]
+        if end != mid or _segment_end(mid, self.bone_of, rp, self.min_length) != eff:
+            return
+        upper = float(np.linalg.norm(rp[mid] - rp[joint]))
+        lower = float(np.linalg.norm(rp[eff] - rp[mid]))
+        if eff in self.desired:  # the spine's neck + head: the head's aim point is already known
+            goal = self.desired[eff]
+            pole = self.desired.get(mid, goal) - head
+        elif joint in ("left_hip", "right_hip"):
+            # Feet go where the scaled source puts them (no sinking, no sliding); the leg bends to reach.
+            goal = sp[eff]
+            pole = sp[mid] - sp[joint]
+        else:
+            # Hands relative to the shoulder, the source arm scaled to the rig's arm length.
+            src_len = np.linalg.norm(sp[mid] - sp[joint], axis=-1) + np.linalg.norm(sp[eff] - sp[mid], axis=-1)
+            k = (upper + lower) / np.maximum(src_len, _EPS)
+            goal = head + k[:, None] * (sp[eff] - sp[joint])
+            pole = sp[mid] - sp[joint]
+        self.desired[mid] = two_bone_middle(head, goal, upper, lower, pole)
+        self.desired[eff] = goal
+
+    def aim(self, b: int, joint: str, end: str, Crot: np.ndarray, head: np.ndarray) -> np.ndarray:
+        """(T, 3, 3) armature-space rotation of bone b: its segment along the desired direction, twisted."""
+        rest, sp, rp, options = self.rest, self.sp, self.rp, self.options
+        seg_rest = self.rig.heads[self.rig.index(self.bone_of[end])] - self.rig.heads[b]
+        v_local = rest[b, :3, :3].T @ normalize(seg_rest)
+        a = Crot @ v_local  # (T, 3)
+        d = normalize((self.desired[end] - head) if end in self.desired else (sp[end] - sp[joint]))  # (T, 3)
+        if options.match == "effectors" and (joint, end) in _FEET:
+            # A fixed-length rig foot aimed along the source's ankle -> toe line digs its toe into the floor
+            # whenever the source's foot is shorter (generated joints do not keep bone lengths): while the
+            # source's toe is down, pitch the foot so the rig's toe stands exactly as high as the source's.
+            d = _toe_on_floor(d, head, sp[end], float(np.linalg.norm(seg_rest)), self.up, self.units)
+        ref = twist_reference(joint, self.sp_mapped, rest=False) if options.twist else None
+        W = rotation_between(a, d, ref[0] if ref is not None else None) @ Crot  # (T, 3, 3)
+        if ref is not None:
+            W = self._twist(b, joint, W, d, ref, seg_rest)
+        if joint == "pelvis" and options.twist and options.match == "effectors":
+            # The hips' lateral axis decides the facing and where the legs hang: match it exactly, and the
+            # pelvis segment as closely as that allows.
+            lat_src = normalize(sp["left_hip"] - sp["right_hip"])
+            lat_rest = rest[b, :3, :3].T @ normalize(rp["left_hip"] - rp["right_hip"])
+            F_rest = _frame(Crot @ lat_rest, Crot @ v_local)
+            W = _frame(lat_src, d) @ np.swapaxes(F_rest, -1, -2) @ Crot
+        return W
+
+    def _twist(self, b: int, joint: str, W: np.ndarray, d: np.ndarray, ref, seg_rest: np.ndarray) -> np.ndarray:
+        """Turn W about the segment direction d so the bone's side axis follows the source's (``ref``)."""
+        h_rest, _ = twist_reference(joint, self.rp, rest=True)
+        h_rest = h_rest - np.dot(h_rest, normalize(seg_rest)) * normalize(seg_rest)
+        if np.linalg.norm(h_rest) < 1e-6:
+            h_rest = any_perpendicular(normalize(seg_rest))
+        h_local = self.rest[b, :3, :3].T @ normalize(h_rest)
+        h_cur = np.einsum("tij,j->ti", W, h_local)
+        h_src, weight = ref
+        h_src = h_src - np.sum(h_src * d, -1, keepdims=True) * d
+        weight = np.where(np.linalg.norm(h_src, axis=-1) < 1e-3, 0.0, weight)
+        return axis_angle_matrix(d, _twist_angles(h_cur, h_src, weight, d)) @ W
+
+    def place_pelvis(self, b: int, joint: str, Crot: np.ndarray) -> None:
+        """Move the pelvis so the rig's hip midpoint lands on the scaled source's; in the effector mode also aim
+        the spine, neck and head at the source's joints (scaled to the rig's spine length)."""
+        sp, rig = self.sp, self.rig
+        self.local_loc[b] = np.zeros((self.T, 3))
+        self.pose_cache.clear()
+        left, right = rig.index(self.bone_of["left_hip"]), rig.index(self.bone_of["right_hip"])
+        hips_now = (self.pose(left)[:, :3, 3] + self.pose(right)[:, :3, 3]) / 2
+        hips_src = (sp["left_hip"] + sp["right_hip"]) / 2
+        self.local_loc[b] = np.einsum("tji,tj->ti", Crot, hips_src - hips_now)  # Crot^T @ delta
+        self.pose_cache.clear()
+        if self.options.match != "effectors":
+            return
+        chain = [joint]
+        while chain[-1] is not None and chain[-1] != "head":
+            chain.append(_segment_end(chain[-1], self.bone_of, self.rp, self.min_length))
+        chain = [j for j in chain if j is not None]
+        if len(chain) < 2:
+            return
+        pairs = list(zip(chain[:-1], chain[1:]))
+        l_rig = sum(float(np.linalg.norm(self.rp[y] - self.rp[x])) for x, y in pairs)
+        l_src = sum(np.linalg.norm(sp[y] - sp[x], axis=-1) for x, y in pairs)
+        k = (l_rig / np.maximum(l_src, _EPS))[:, None]
+        base = self.pose(b)[:, :3, 3]
+        for j in chain[1:]:
+            self.desired[j] = base + k * (sp[j] - sp[joint])
+        if len(chain) >= 4:  # e.g. chest -> neck -> head: a two-bone chain, so the head lands exactly
+            self.ik_chains[chain[-3]] = (chain[-2], chain[-1])
 
 
 _FEET = {("left_ankle", "left_foot"), ("right_ankle", "right_foot")}
