@@ -38,6 +38,7 @@ import json
 import os
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
@@ -313,13 +314,23 @@ def check_rig(obj, bone_map, addon) -> str:
     return "canonical" if rig.is_canonical(obj) else apply.bone_map_of(obj).source
 
 
-def run(args) -> int:
-    addon = _addon_package()
-    from_pkg = lambda name: importlib.import_module(f"{addon.__name__}.{name}")  # noqa: E731
-    batchfile, env = from_pkg("worker.batchfile"), from_pkg("env")
+@dataclass
+class _Inputs:
+    """Everything a batch run needs from its arguments, checked before any work."""
 
-    t_start = time.perf_counter()
-    # 1. Inputs, all checked before any work.
+    lines: list
+    requests: list
+    model_dir: str | None
+    paths: dict
+    bvh_dir: Path | None
+    retarget: object  # mld_core.rig.keying.RetargetSettings
+    bone_map: object  # a BoneMap from --bone-map, or None
+
+
+def checked_inputs(args, addon) -> _Inputs:
+    """1. Inputs: prompts, numbers, the model folder, every output path, dependencies, keying options."""
+    batchfile = importlib.import_module(f"{addon.__name__}.worker.batchfile")
+    env = importlib.import_module(f"{addon.__name__}.env")
     if args.prompts:
         lines = batchfile.read_prompt_file(args.prompts)
     else:
@@ -328,15 +339,8 @@ def run(args) -> int:
     if model_dir and not Path(model_dir).is_dir():
         raise BatchError(f"model folder not found: {model_dir}")
     requests = batchfile.requests_from_lines(
-        lines,
-        default_seconds=args.seconds,
-        seed=args.seed,
-        steps=args.steps,
-        guidance=args.guidance,
-        variants=1,
-        model_dir=model_dir,
-        device=args.device,
-        threads=args.threads,
+        lines, default_seconds=args.seconds, seed=args.seed, steps=args.steps, guidance=args.guidance, variants=1,
+        model_dir=model_dir, device=args.device, threads=args.threads,
     )
     inputs.check_fps(args.fps, "--fps")
     inputs.number_in_range(args.tolerance, "--tolerance", 0, 180)
@@ -349,64 +353,77 @@ def run(args) -> int:
     if missing:
         raise BatchError(env.dependency_message(missing))
     retarget, bone_map = retarget_inputs(args, addon)
+    return _Inputs(lines, requests, model_dir, paths, bvh_dir, retarget, bone_map)
 
+
+def run(args) -> int:
+    addon = _addon_package()
+    t_start = time.perf_counter()
+    # 1. Inputs, all checked before any work.
+    inp = checked_inputs(args, addon)
     # 2. Scene and armature (and whether its bone map can take the motion: before the model loads).
     scene, obj = _prepare_scene(args, addon)
-    map_source = check_rig(obj, bone_map, addon)
-
+    map_source = check_rig(obj, inp.bone_map, addon)
     # 3. Model (once), then one take per line.
-    model_cache, generation, apply = from_pkg("worker.model_cache"), from_pkg("worker.generation"), from_pkg("scene.key_takes")
-    cache = model_cache.PipelineCache()
+    model_cache = importlib.import_module(f"{addon.__name__}.worker.model_cache")
     t0 = time.perf_counter()
-    pipe = cache.get(model_dir, args.device, args.threads)
+    pipe = model_cache.PipelineCache().get(inp.model_dir, args.device, args.threads)
     load_s = time.perf_counter() - t0
     print(f"model {getattr(pipe, 'model_id', '?')} loaded in {load_s:.2f} s")
+    records, bvh_takes = key_every_line(args, addon, inp, pipe, scene, obj)
+    # 4. Outputs: the .blend, the manifest, the preview, the BVHs: staged, then put in place together.
+    env = importlib.import_module(f"{addon.__name__}.env")
+    manifest = _manifest(args, inp.paths, obj, map_source, pipe, inp.model_dir, inp.retarget, scene, records, env,
+                         load_s, t_start)
+    write_outputs(args, addon, inp.paths, scene, obj, manifest, bvh_takes, t_start)
+    print(f"wrote {inp.paths['blend']} ({len(records)} take{'s' if len(records) != 1 else ''}) and "
+          f"{inp.paths['manifest']}")
+    return EXIT_OK
+
+
+def key_every_line(args, addon, inp: _Inputs, pipe, scene, obj) -> tuple[list, list]:
+    """3. One take per prompt line, keyed as its own Action (the first assigned); (manifest records, BVHs to
+    write)."""
+    generation = importlib.import_module(f"{addon.__name__}.worker.generation")
+    key_takes = importlib.import_module(f"{addon.__name__}.scene.key_takes")
     min_s, max_s = getattr(pipe, "min_seconds", None), getattr(pipe, "max_seconds", None)
     records, bvh_takes = [], []
-    first_frames = 0
-    for index, (line, request) in enumerate(zip(lines, requests)):
+    for index, (line, request) in enumerate(zip(inp.lines, inp.requests)):
         if min_s is not None and not (min_s - 1e-6 <= request.seconds <= max_s + 1e-6):
             raise BatchError(f"line {line.line}: this model makes {min_s:g} to {max_s:g} s, got {request.seconds:g}")
         t0 = time.perf_counter()
         result = generation.generate(pipe, request)
-        report = apply.apply_result(
-            obj, result, scene, exact=not args.no_exact, assign=index == 0, options=retarget, bone_map=bone_map
-        )
+        report = key_takes.apply_result(obj, result, scene, exact=not args.no_exact, assign=index == 0,
+                                        options=inp.retarget, bone_map=inp.bone_map)
         take = result.takes[0]
         take.name = report.actions[0]
         if take.coverage is not None and take.coverage.verdict == "unknown":
             print(f"warning: line {line.line}: {take.coverage.warning()}", file=sys.stderr)
         record = take.summary()
-        record.update(
-            line=line.line,
-            scene_frames=report.frames,
-            scene_fps=report.fps,
-            time_s=round(time.perf_counter() - t0, 4),
-            key_s=round(report.key_seconds, 4),
-            keys=report.keys,
-            retargeted=report.retargeted,
-            reduction_ratio=round(report.reduction_ratio, 4),
-        )
-        if bvh_dir is not None:
-            bvh_path = bvh_dir / f"{take.name}.bvh"
+        record.update(line=line.line, scene_frames=report.frames, scene_fps=report.fps,
+                      time_s=round(time.perf_counter() - t0, 4), key_s=round(report.key_seconds, 4), keys=report.keys,
+                      retargeted=report.retargeted, reduction_ratio=round(report.reduction_ratio, 4))
+        if inp.bvh_dir is not None:
+            bvh_path = inp.bvh_dir / f"{take.name}.bvh"
             inputs.check_outputs({"--bvh-dir file": bvh_path}, overwrite=args.overwrite)
             bvh_takes.append((bvh_path, take))
             record["bvh"] = str(bvh_path)
         records.append(record)
         if index == 0:
-            first_frames = report.frames
-        print(f"[{index + 1}/{len(requests)}] {take.name}: {take.frames} frames ({request.seconds:g} s) in {record['time_s']:.2f} s")
-    scene.frame_end = scene.frame_start + max(first_frames, 1) - 1
+            scene.frame_end = scene.frame_start + max(report.frames, 1) - 1
+        print(f"[{index + 1}/{len(inp.requests)}] {take.name}: {take.frames} frames ({request.seconds:g} s) in "
+              f"{record['time_s']:.2f} s")
+    return records, bvh_takes
 
-    # 4. Outputs: the .blend, the manifest, the preview, the BVHs: staged, then put in place together.
+
+def write_outputs(args, addon, paths: dict, scene, obj, manifest: dict, bvh_takes: list, t_start: float) -> None:
+    """4. Every output staged beside its target, then all renamed together (none on any failure)."""
     with OutputSet(overwrite=args.overwrite) as outputs:
         outputs.stage(paths["blend"], save_blend_copy, suffix=".blend")
         for bvh_path, take in bvh_takes:
             outputs.stage(bvh_path, lambda tmp, take=take: write_bvh(Path(tmp), take), suffix=".bvh")
-        manifest = _manifest(args, paths, obj, map_source, pipe, model_dir, retarget, scene, records, env, apply,
-                             load_s, t_start)
         if "preview" in paths:
-            preview = from_pkg("scene.preview")
+            preview = importlib.import_module(f"{addon.__name__}.scene.preview")
             t0 = time.perf_counter()
             outputs.stage(paths["preview"], lambda tmp: preview.render_preview(scene, obj, tmp), suffix=".png")
             manifest["preview"] = str(paths["preview"])
@@ -415,11 +432,9 @@ def run(args) -> int:
         manifest["timing"]["total_s"] = round(time.perf_counter() - t_start, 4)
         text = json.dumps(manifest, indent=2) + "\n"
         outputs.stage(paths["manifest"], lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
-    print(f"wrote {paths['blend']} ({len(records)} take{'s' if len(records) != 1 else ''}) and {paths['manifest']}")
-    return EXIT_OK
 
 
-def _manifest(args, paths, obj, map_source, pipe, model_dir, retarget, scene, records, env, apply, load_s,
+def _manifest(args, paths, obj, map_source, pipe, model_dir, retarget, scene, records, env, load_s,
               t_start) -> dict:
     return {
         "format": "mld-takes",
@@ -439,7 +454,7 @@ def _manifest(args, paths, obj, map_source, pipe, model_dir, retarget, scene, re
             "device": args.device,
             "exact": not args.no_exact,
             "retarget": retarget.to_dict(),
-            "scene_fps": apply.scene_fps(scene),
+            "scene_fps": scene.render.fps / (scene.render.fps_base or 1.0),
             "frame_start": scene.frame_start,
         },
         "timing": {"load_s": round(load_s, 4), "total_s": round(time.perf_counter() - t_start, 4)},

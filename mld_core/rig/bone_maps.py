@@ -328,104 +328,116 @@ def _roles(name: str) -> tuple[str | None, list[tuple[str, int]]]:
 
 def fuzzy_bone_map(bone_names: Sequence[str], parents: Sequence | None = None) -> BoneMap:
     """Best-effort map from name keywords, left/right markers and the chain hierarchy (root -> leaves)."""
-    names = list(bone_names)
-    n = len(names)
-    index = {nm: i for i, nm in enumerate(names)}
-    par = [-1] * n
-    if parents is not None:
-        for i, p in enumerate(parents):
-            if isinstance(p, str):
-                par[i] = index.get(p, -1)
-            elif p is None:
-                par[i] = -1
-            else:
-                par[i] = int(p)
+    match = _FuzzyMatch(list(bone_names), parents)
+    for side in ("left", "right"):
+        match.leg(side)
+        match.arm(side)
+    match.trunk()
+    return BoneMap({j: match.names[i] for j, i in match.joints.items()}, source="auto")
 
-    def ancestors(i: int) -> list[int]:
+
+class _FuzzyMatch:
+    """The bones of one rig with their parents, depths and name roles, and the joints matched so far."""
+
+    def __init__(self, names: list[str], parents: Sequence | None):
+        self.names = names
+        n = len(names)
+        index = {nm: i for i, nm in enumerate(names)}
+        self.par = [-1] * n
+        for i, p in enumerate(parents if parents is not None else ()):
+            self.par[i] = index.get(p, -1) if isinstance(p, str) else (-1 if p is None else int(p))
+        self.depth = [len(self.ancestors(i)) for i in range(n)]
+        self.info = [_roles(nm) for nm in names]
+        self.joints: dict[str, int] = {}
+        self.used: set[int] = set()
+
+    def ancestors(self, i: int) -> list[int]:
         out = []
-        while par[i] >= 0 and len(out) <= n:
-            i = par[i]
+        while self.par[i] >= 0 and len(out) <= len(self.names):
+            i = self.par[i]
             out.append(i)
         return out
 
-    depth = [len(ancestors(i)) for i in range(n)]
-    info = [_roles(nm) for nm in names]
-
-    def candidates(role: str, side: str | None, under: int | None = None, exclude: set[int] = frozenset()) -> list[int]:
+    def candidates(self, role: str, side: str | None, under: int | None = None,
+                   exclude: set[int] = frozenset()) -> list[int]:
+        """Bones named for ``role`` on ``side`` (below ``under``): closest to the chain start first, exact words
+        before contained ones."""
         found = []
-        for i, (s, roles) in enumerate(info):
+        for i, (s, roles) in enumerate(self.info):
             if i in exclude or s != side:
                 continue
             strength = max((st for r, st in roles if r == role), default=0)
-            if not strength:
+            if not strength or (under is not None and under not in self.ancestors(i)):
                 continue
-            if under is not None and under not in ancestors(i):
-                continue
-            # Closest to the chain start first, exact words before contained ones.
-            found.append((depth[i] - (depth[under] if under is not None else 0), -strength, i))
+            found.append((self.depth[i] - (self.depth[under] if under is not None else 0), -strength, i))
         return [i for _, _, i in sorted(found)]
 
-    joints: dict[str, int] = {}
-    used: set[int] = set()
-
-    def take(joint: str, i: int | None) -> int | None:
+    def take(self, joint: str, i: int | None) -> int | None:
         if i is not None:
-            joints[joint] = i
-            used.add(i)
+            self.joints[joint] = i
+            self.used.add(i)
         return i
 
-    def first(lst: list[int]) -> int | None:
-        return lst[0] if lst else None
+    def first_of(self, role: str, side: str | None, under: int | None = None) -> int | None:
+        found = self.candidates(role, side, under, self.used)
+        return found[0] if found else None
 
-    for side in ("left", "right"):
-        thigh = take(f"{side}_hip", first(candidates("thigh", side, exclude=used)))
-        shin = take(f"{side}_knee", first(candidates("shin", side, thigh, used))) if thigh is not None else None
-        foot = take(f"{side}_ankle", first(candidates("foot", side, shin, used))) if shin is not None else None
+    def lca(self, a: int, b: int) -> int | None:
+        chain_b = set([b] + self.ancestors(b))
+        return next((x for x in [a] + self.ancestors(a) if x in chain_b), None)
+
+    def leg(self, side: str) -> None:
+        thigh = self.take(f"{side}_hip", self.first_of("thigh", side))
+        shin = self.take(f"{side}_knee", self.first_of("shin", side, thigh)) if thigh is not None else None
+        foot = self.take(f"{side}_ankle", self.first_of("foot", side, shin)) if shin is not None else None
         if foot is not None:  # toes by name, else a foot-named bone below the ankle ("left_ankle" > "left_foot")
-            take(f"{side}_foot", first(candidates("toe", side, foot, used) or candidates("foot", side, foot, used)))
-        upper = first(candidates("upperarm", side, exclude=used))
-        collars = candidates("collar", side, exclude=used)
+            toe = self.candidates("toe", side, foot, self.used) or self.candidates("foot", side, foot, self.used)
+            self.take(f"{side}_foot", toe[0] if toe else None)
+
+    def arm(self, side: str) -> None:
+        upper = self.first_of("upperarm", side)
+        collars = self.candidates("collar", side, exclude=self.used)
         if upper is None:  # "shoulder" naming the upper arm: the collar-like bone nearest the forearm
-            with_forearm = [c for c in collars if candidates("forearm", side, c, used)]
-            upper = max(with_forearm, key=lambda c: depth[c], default=None)
+            with_forearm = [c for c in collars if self.candidates("forearm", side, c, self.used)]
+            upper = max(with_forearm, key=lambda c: self.depth[c], default=None)
             collars = [c for c in collars if c != upper]
-        take(f"{side}_shoulder", upper)
-        if upper is not None:
-            anc = set(ancestors(upper))
-            take(f"{side}_collar", first([c for c in collars if c in anc]))
-            fore = take(f"{side}_elbow", first(candidates("forearm", side, upper, used)))
-            if fore is not None:
-                take(f"{side}_wrist", first(candidates("hand", side, fore, used)))
+        self.take(f"{side}_shoulder", upper)
+        if upper is None:
+            return
+        anc = set(self.ancestors(upper))
+        self.take(f"{side}_collar", next((c for c in collars if c in anc), None))
+        fore = self.take(f"{side}_elbow", self.first_of("forearm", side, upper))
+        if fore is not None:
+            self.take(f"{side}_wrist", self.first_of("hand", side, fore))
 
-    def lca(a: int, b: int) -> int | None:
-        chain_a = [a] + ancestors(a)
-        chain_b = set([b] + ancestors(b))
-        return next((x for x in chain_a if x in chain_b), None)
-
-    # The pelvis is where the legs branch (a "root" or "COG" above it is left alone); else a pelvis-like name.
-    pelvis = None
-    if "left_hip" in joints and "right_hip" in joints:
-        pelvis = lca(joints["left_hip"], joints["right_hip"])
-    if pelvis is None:
-        pelvis = first(candidates("pelvis", None, exclude=used))
-    if pelvis is not None:
-        take("pelvis", pelvis)
+    def trunk(self) -> None:
+        """The pelvis is where the legs branch (a "root" or "COG" above it is left alone), else a pelvis-like name;
+        the spine runs from it to where the arms branch; neck and head above."""
+        joints = self.joints
+        pelvis = None
+        if "left_hip" in joints and "right_hip" in joints:
+            pelvis = self.lca(joints["left_hip"], joints["right_hip"])
+        if pelvis is None:
+            pelvis = self.first_of("pelvis", None)
+        if pelvis is None:
+            return
+        self.take("pelvis", pelvis)
         arm_roots = [joints.get(f"{s}_collar", joints.get(f"{s}_shoulder")) for s in ("left", "right")]
-        chest = lca(*arm_roots) if None not in arm_roots else None
-        if chest is not None and chest != pelvis and pelvis in ancestors(chest):
-            below = ancestors(chest)
-            path = list(reversed([chest] + below[: below.index(pelvis)]))  # just above the pelvis .. the chest
-            take("spine3", chest)
-            if len(path) >= 2:
-                take("spine1", path[0])
-            if len(path) >= 3:
-                take("spine2", path[len(path) // 2])
-            head = first(candidates("head", None, chest, used))
-            if head is not None:
-                take("head", head)
-                up_to_chest = ancestors(head)[: ancestors(head).index(chest)]
-                between = list(reversed(up_to_chest))  # bones from the chest (exclusive) to the head (exclusive)
-                necks = [a for a in between if any(r == "neck" for r, _ in info[a][1])]
-                if necks or between:
-                    take("neck", (necks or between)[0])
-    return BoneMap({j: names[i] for j, i in joints.items()}, source="auto")
+        chest = self.lca(*arm_roots) if None not in arm_roots else None
+        if chest is None or chest == pelvis or pelvis not in self.ancestors(chest):
+            return
+        below = self.ancestors(chest)
+        path = list(reversed([chest] + below[: below.index(pelvis)]))  # just above the pelvis .. the chest
+        self.take("spine3", chest)
+        if len(path) >= 2:
+            self.take("spine1", path[0])
+        if len(path) >= 3:
+            self.take("spine2", path[len(path) // 2])
+        head = self.take("head", self.first_of("head", None, chest))
+        if head is None:
+            return
+        up_to_chest = self.ancestors(head)[: self.ancestors(head).index(chest)]
+        between = list(reversed(up_to_chest))  # bones from the chest (exclusive) to the head (exclusive)
+        necks = [a for a in between if any(r == "neck" for r, _ in self.info[a][1])]
+        if necks or between:
+            self.take("neck", (necks or between)[0])

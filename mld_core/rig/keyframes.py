@@ -550,74 +550,76 @@ def foot_lock(
     quats = np.array(quats, dtype=np.float64, copy=True)
     bone_of = dict(zip(result.joints, result.bones))
     col = {b: k for k, b in enumerate(result.bones)}
-    N = quats.shape[0]
     blend = max(1, int(round(blend_s * fps)))
     for side_i, side in enumerate(("left", "right")):
-        hip, knee, ankle = bone_of[f"{side}_hip"], bone_of[f"{side}_knee"], bone_of[f"{side}_ankle"]
         contact = np.asarray(contacts[:, side_i], dtype=bool)
         if not contact.any():
             continue
+        leg = tuple(rig.index(bone_of[f"{side}_{j}"]) for j in ("hip", "knee", "ankle"))
         rot, loc = _full_pose(result, quats, root_loc)
         pose = rt.fk(rig, rot, loc)  # (N, B, 4, 4)
-        ih, ik, ia = rig.index(hip), rig.index(knee), rig.index(ankle)
-        a_pos = pose[:, ia, :3, 3]
-        target = a_pos.copy()
-        weight = np.zeros(N)
-        runs = contact_runs(contact)
-        for s, e in runs:
-            lock = a_pos[s:e].mean(axis=0)
-            lo, hi = max(0, s - blend), min(N, e + blend)
-            for t in range(lo, hi):
-                if t < s:
-                    w = (t - (s - blend) + 1) / (blend + 1)
-                elif t >= e:
-                    w = ((e + blend) - t) / (blend + 1)
-                else:
-                    w = 1.0
-                w = w * w * (3 - 2 * w)
-                if w > weight[t]:
-                    weight[t] = w
-                    target[t] = (1 - w) * a_pos[t] + w * lock
+        target, weight = _locked_ankle(pose[:, leg[2], :3, 3], contact, blend)
         frames = np.nonzero(weight > 0)[0]
         if not len(frames):
             continue
-        # Two-bone IK on those frames, in armature space.
-        H = pose[frames, ih, :3, 3]
-        K = pose[frames, ik, :3, 3]
-        A = a_pos[frames]
-        G = target[frames]
-        upper = float(np.linalg.norm(rig.heads[ik] - rig.heads[ih]))
-        lower = float(np.linalg.norm(rig.heads[ia] - rig.heads[ik]))
-        K_new = rt.two_bone_middle(H, G, upper, lower, K - (H + A) / 2)
-        # Rotate the thigh so the knee moves to K_new, then the shin so the ankle reaches G; keep the foot's world
-        # orientation.
-        R_thigh = rt.rotation_between(K - H, K_new - H)
-        A_after = H + np.einsum("tij,tj->ti", R_thigh, A - H)
-        R_shin = rt.rotation_between(A_after - K_new, G - K_new)
-        thigh_w = pose[frames, ih, :3, :3]
-        shin_w = pose[frames, ik, :3, :3]
-        foot_w = pose[frames, ia, :3, :3]
-        new_thigh_w = R_thigh @ thigh_w
-        new_shin_w = R_shin @ R_thigh @ shin_w
-        rest = rig.matrices[:, :3, :3]
-        new_local = {}
-        # Bones between thigh and shin (or shin and foot), if any, are unmapped and rigid: the shin is carried by
-        # the thigh as if it were its parent, and the foot by the shin.
-        for bone_i, new_w, parent_w, parent_i in (
-            (ih, new_thigh_w, None, rig.parents[ih]),
-            (ik, new_shin_w, new_thigh_w, ih),
-            (ia, foot_w, new_shin_w, ik),
-        ):
-            if parent_w is None:
-                parent_w = pose[frames, parent_i, :3, :3] if parent_i >= 0 else np.eye(3)
-            prest = rest[parent_i] if parent_i >= 0 else np.eye(3)
-            carried = parent_w @ prest.T @ rest[bone_i]
-            new_local[bone_i] = np.swapaxes(carried, -1, -2) @ new_w
-        for bone_i, m in new_local.items():
+        for bone_i, m in _leg_to_target(rig, pose[frames], leg, target[frames]).items():
             name = rig.names[bone_i]
             if name in col:
                 quats[frames, col[name]] = rt.matrix_to_quat(m)
     return rt.quat_continuity(quats), root_loc
+
+
+def _locked_ankle(a_pos: np.ndarray, contact: np.ndarray, blend: int) -> tuple[np.ndarray, np.ndarray]:
+    """Where the ankle should be ((N, 3)) and how much of the lock applies ((N,), 0..1): the mean position of each
+    contact run, eased in and out over ``blend`` frames around it (smoothstep)."""
+    N = len(a_pos)
+    target = a_pos.copy()
+    weight = np.zeros(N)
+    for s, e in contact_runs(contact):
+        lock = a_pos[s:e].mean(axis=0)
+        for t in range(max(0, s - blend), min(N, e + blend)):
+            if t < s:
+                w = (t - (s - blend) + 1) / (blend + 1)
+            elif t >= e:
+                w = ((e + blend) - t) / (blend + 1)
+            else:
+                w = 1.0
+            w = w * w * (3 - 2 * w)
+            if w > weight[t]:
+                weight[t] = w
+                target[t] = (1 - w) * a_pos[t] + w * lock
+    return target, weight
+
+
+def _leg_to_target(rig: "rt.RigRest", pose: np.ndarray, leg: tuple[int, int, int], goal: np.ndarray) -> dict:
+    """New local rotations (bone index -> (F, 3, 3)) of thigh, shin and foot so the ankle reaches ``goal`` (two-bone
+    IK in armature space; the foot keeps its world orientation). ``pose``: (F, B, 4, 4) posed matrices."""
+    ih, ik, ia = leg
+    H, K, A = pose[:, ih, :3, 3], pose[:, ik, :3, 3], pose[:, ia, :3, 3]
+    upper = float(np.linalg.norm(rig.heads[ik] - rig.heads[ih]))
+    lower = float(np.linalg.norm(rig.heads[ia] - rig.heads[ik]))
+    K_new = rt.two_bone_middle(H, goal, upper, lower, K - (H + A) / 2)
+    # Rotate the thigh so the knee moves to K_new, then the shin so the ankle reaches the goal.
+    R_thigh = rt.rotation_between(K - H, K_new - H)
+    A_after = H + np.einsum("tij,tj->ti", R_thigh, A - H)
+    R_shin = rt.rotation_between(A_after - K_new, goal - K_new)
+    new_thigh_w = R_thigh @ pose[:, ih, :3, :3]
+    new_shin_w = R_shin @ R_thigh @ pose[:, ik, :3, :3]
+    rest = rig.matrices[:, :3, :3]
+    new_local = {}
+    # Bones between thigh and shin (or shin and foot), if any, are unmapped and rigid: the shin is carried by the
+    # thigh as if it were its parent, and the foot by the shin.
+    for bone_i, new_w, parent_w, parent_i in (
+        (ih, new_thigh_w, None, rig.parents[ih]),
+        (ik, new_shin_w, new_thigh_w, ih),
+        (ia, pose[:, ia, :3, :3], new_shin_w, ik),
+    ):
+        if parent_w is None:
+            parent_w = pose[:, parent_i, :3, :3] if parent_i >= 0 else np.eye(3)
+        prest = rest[parent_i] if parent_i >= 0 else np.eye(3)
+        carried = parent_w @ prest.T @ rest[bone_i]
+        new_local[bone_i] = np.swapaxes(carried, -1, -2) @ new_w
+    return new_local
 
 
 def _full_pose(result: "rt.RetargetResult", quats: np.ndarray, root_loc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
