@@ -10,7 +10,7 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
-from mld_core.rig import canonical_pose as posing
+from mld_core.rig import canonical_pose
 
 CANONICAL_NAME = "MLD_Armature"
 BODY_NAME = "MLD_Body"
@@ -43,7 +43,7 @@ def _ensure_object_mode(context) -> None:
 
 def create_canonical_armature(context, name: str = CANONICAL_NAME, *, location=(0.0, 0.0, 0.0), body: bool = True):
     """Create, link (to the active collection) and select the canonical armature; returns the object."""
-    names, parents, heads, tails = posing.canonical_rig()
+    names, parents, heads, tails = canonical_pose.canonical_rig()
     _ensure_object_mode(context)
     arm = bpy.data.armatures.new(name)
     obj = bpy.data.objects.new(name, arm)
@@ -84,7 +84,7 @@ def create_canonical_armature(context, name: str = CANONICAL_NAME, *, location=(
 
 def add_body(armature_obj, collection, names, parents, heads, tails, name: str = BODY_NAME):
     """A low-poly mesh bound rigidly to the armature's bones (so renders show the figure)."""
-    from ..scene.body import body_geometry
+    from .body import body_geometry
 
     verts, faces, owners = body_geometry(names, parents, heads, tails)
     mesh = bpy.data.meshes.new(name)

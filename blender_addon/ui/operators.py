@@ -14,7 +14,7 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 
 from .. import env
-from ..ui import runtime
+from . import runtime
 from ..scene.key_takes import check_target, settings_of
 from ..worker.validation import RequestError, validate_request
 
@@ -98,7 +98,7 @@ class MLD_OT_generate(bpy.types.Operator):
         return True
 
     def execute(self, context):
-        from ..ui.preferences import get_prefs
+        from .preferences import get_prefs
 
         settings = context.scene.mld_motion
         obj = resolve_target(context)

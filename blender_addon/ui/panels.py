@@ -5,9 +5,9 @@ from __future__ import annotations
 import bpy
 
 from .. import env
-from ..ui import quality_panel as quality_ui
-from ..ui import runtime
-from ..ui.operators import resolve_target
+from . import quality_panel
+from . import runtime
+from .operators import resolve_target
 
 
 class MLD_PT_generate(bpy.types.Panel):
@@ -35,7 +35,7 @@ class MLD_PT_generate(bpy.types.Panel):
             col.label(text="(or Preferences > Add-ons > MLD Text to Motion)")
 
         layout.prop(settings, "prompt", text="")
-        quality_ui.draw_coverage(layout, settings, context)
+        quality_panel.draw_coverage(layout, settings, context)
         col = layout.column(align=True)
         row = col.row(align=True)
         row.prop(settings, "seconds")
@@ -83,7 +83,7 @@ class MLD_PT_generate(bpy.types.Panel):
                 box.label(text=f"{settings.last_frames} frames in {settings.last_seconds:.2f} s", icon="CHECKMARK")
                 for name in settings.last_actions.split(", "):
                     box.label(text=name, icon="ACTION")
-                quality_ui.draw_badges(layout, settings)
+                quality_panel.draw_badges(layout, settings)
             else:
                 box.label(text=settings.last_message, icon="INFO")
 
@@ -105,18 +105,18 @@ classes = (MLD_PT_generate,)
 
 
 def register():
-    from ..ui import retarget_panel as retarget_ui
+    from . import retarget_panel
 
     for cls in classes:
         bpy.utils.register_class(cls)
-    retarget_ui.register()  # the Retarget sub-panel (after its parent), its operators and Object.mld_retarget
-    quality_ui.register()  # the "What This Model Knows" sub-panel
+    retarget_panel.register()  # the Retarget sub-panel (after its parent), its operators and Object.mld_retarget
+    quality_panel.register()  # the "What This Model Knows" sub-panel
 
 
 def unregister():
-    from ..ui import retarget_panel as retarget_ui
+    from . import retarget_panel
 
-    quality_ui.unregister()
-    retarget_ui.unregister()
+    quality_panel.unregister()
+    retarget_panel.unregister()
     for cls in reversed(classes):
         bpy.utils.unregister_class(cls)

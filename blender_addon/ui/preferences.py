@@ -6,7 +6,7 @@ import bpy
 from bpy.props import EnumProperty, IntProperty, StringProperty
 
 from .. import env
-from ..ui import runtime
+from . import runtime
 
 ADDON_PACKAGE = __package__.rpartition(".")[0]  # the add-on itself (this module lives in its ui package)
 

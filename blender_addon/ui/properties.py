@@ -5,7 +5,7 @@ from __future__ import annotations
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-from ..ui import quality_panel as quality_ui
+from . import quality_panel
 from mld_core.rig.keying import DEFAULT_TOLERANCE_DEG, ROTATION_CHOICES
 
 from ..worker.validation import MAX_STEPS, MAX_VARIANTS, SEED_MAX, model_limits
@@ -22,7 +22,7 @@ class MLD_SceneSettings(bpy.types.PropertyGroup):
         name="Prompt",
         description="What the character does, in plain English (e.g. 'a person walks forward and waves')",
         default="a person walks forward and waves with the right hand",
-        update=lambda self, context: quality_ui.prompt_changed(self, context),  # coverage as the user types
+        update=lambda self, context: quality_panel.prompt_changed(self, context),  # coverage as the user types
         options={"TEXTEDIT_UPDATE"},
     )
     seconds: FloatProperty(

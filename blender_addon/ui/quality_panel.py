@@ -20,7 +20,7 @@ _watcher: CoverageWatcher | None = None
 def _model_key(context) -> tuple:
     """(model folder, device, threads) as Generate will use them (operators.request_from_settings)."""
     from ..env import model_dir_override
-    from ..ui.preferences import get_prefs
+    from .preferences import get_prefs
 
     prefs = get_prefs(context)
     model_dir = (prefs.model_dir if prefs is not None else "") or model_dir_override()
@@ -29,7 +29,7 @@ def _model_key(context) -> tuple:
 
 
 def _check(text: str, key: tuple):
-    from ..ui import runtime
+    from . import runtime
 
     model_dir, device, threads = key
     return runtime.cache().get(model_dir, device, threads).coverage([text])[0]
@@ -53,7 +53,7 @@ def prompt_changed(settings, context) -> None:
 
 
 def _poll():
-    from ..ui.runtime import tag_redraw
+    from .runtime import tag_redraw
 
     tag_redraw()
     return POLL_S if _watcher is not None and _watcher.pending else None

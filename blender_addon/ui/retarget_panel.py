@@ -4,7 +4,7 @@ The per-armature bone map is stored on the armature **Object** as ``obj.mld_reta
 ``rows``, one ``(joint, bone)`` row per canonical joint in skeleton order (bone '' = unmapped; ``required``
 marks the joints Generate cannot do without), and ``extras``, a JSON string with the map's source (preset name,
 "auto", "file" ...), parent overrides and pose properties (Rigify's IK/FK switches). With no row filled in the
-armature uses the detected map (cached per set of bone names). ``apply.bone_map_of(obj)`` reads it.
+armature uses the detected map (cached per set of bone names). ``key_takes.bone_map_of(obj)`` reads it.
 
 Operators are adapters over plain functions: ``do_detect(obj)``, ``do_save_map(obj, path)``,
 ``do_load_map(obj, path)``, ``do_clear_map(obj)``, each returning ``(level, message)``.
@@ -16,11 +16,11 @@ import bpy
 from bpy.props import BoolProperty, CollectionProperty, IntProperty, PointerProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
-from ..scene import key_takes as apply
 from mld_core.rig import bone_maps
-from ..scene import canonical_armature as rig
 from mld_core.rig.bone_map_rows import map_extras, map_to_rows
 from mld_core.rig.keying import detections, map_problem
+
+from ..scene import canonical_armature, key_takes
 
 
 # -- data -------------------------------------------------------------------------------------------------------
@@ -58,7 +58,7 @@ def do_detect(obj) -> tuple[str, str]:
     """Fill the armature's map from detection; the message names the preset found and what is missing."""
     if obj is None or obj.type != "ARMATURE":
         return "ERROR", "Pick an armature first"
-    detection = detections.get(obj.data.bones.keys(), apply.rig_parents(obj))
+    detection = detections.get(obj.data.bones.keys(), key_takes.rig_parents(obj))
     store_map(obj, detection.bone_map)
     mapped = len(detection.bone_map.joints)
     text = f"{obj.name}: detected '{detection.source}', {mapped} of 22 joints mapped"
@@ -71,7 +71,7 @@ def do_save_map(obj, path: str) -> tuple[str, str]:
     """Save the armature's map (stored, else detected) as JSON (temporary file, then renamed)."""
     if obj is None or obj.type != "ARMATURE":
         return "ERROR", "Pick an armature first"
-    bone_map = apply.bone_map_of(obj)
+    bone_map = key_takes.bone_map_of(obj)
     try:
         bone_map.save(path)
     except OSError as exc:
@@ -106,7 +106,7 @@ def do_load_map(obj, path: str) -> tuple[str, str]:
 
 
 def _target(context):
-    from ..ui.operators import resolve_target
+    from .operators import resolve_target
 
     return resolve_target(context)
 
@@ -222,7 +222,7 @@ class MLD_PT_retarget(bpy.types.Panel):
     bl_category = "MLD"
 
     def draw(self, context):
-        from ..ui.panels import _wrap
+        from .panels import _wrap
 
         layout = self.layout
         settings = getattr(context.scene, "mld_motion", None)
@@ -231,12 +231,12 @@ class MLD_PT_retarget(bpy.types.Panel):
         obj = _target(context)
         if obj is None:
             layout.label(text="Pick an armature to see its bone map", icon="INFO")
-        elif rig.is_canonical(obj):
+        elif canonical_armature.is_canonical(obj):
             layout.label(text="Canonical armature: no map needed", icon="CHECKMARK")
         else:
             data = obj.mld_retarget
             stored = any(row.bone for row in data.rows)
-            bone_map = apply.bone_map_of(obj)
+            bone_map = key_takes.bone_map_of(obj)
             source = bone_map.source if stored else f"detected: {bone_map.source}"
             layout.label(text=f"Bone map ({source})", icon="GROUP_BONE")
             problem = map_problem(bone_map, obj.data.bones.keys(), "")

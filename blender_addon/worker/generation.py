@@ -15,8 +15,8 @@ from datetime import datetime, timezone
 import numpy as np
 
 from .dependencies import ADDON_VERSION_STRING
-from ..worker.naming import action_name
-from ..worker.validation import GenerateRequest
+from .naming import action_name
+from .validation import GenerateRequest
 
 PROVENANCE_PREFIX = "mld_"
 
