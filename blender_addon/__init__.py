@@ -1,11 +1,10 @@
 """MLD text-to-motion for Blender: type a prompt, get keyframes on an armature.
 
 Works as a Blender 4.2+ extension (``bl_ext.<repo>.mld_motion``, see ``blender_manifest.toml``) and as a
-plain add-on package (``register()`` / ``unregister()``). Importing this package does not import bpy: the
-bpy-free modules (``validation``, ``jobs``, ``model_cache``, ``naming``, ``batchfile``, ``posing``,
-``generation``, ``env``) are plain Python and tested with plain pytest. The bpy modules (``preferences``,
-``properties``, ``operators``, ``panels``, ``keys``, ``rig``, ``apply``, ``preview``) are imported by
-``register()`` only.
+plain add-on package (``register()`` / ``unregister()``). Importing this package does not import bpy. Its folders:
+``worker/`` (bpy-free: requests, the job runner, the model cache, generation), ``scene/`` (bpy: reading a rig,
+writing an Action, the canonical armature, the preview) and ``ui/`` (bpy: operators, panels, properties,
+preferences); ``batch.py`` runs headless. The rig math is in ``mld_core.rig``. See docs/architecture.md.
 """
 
 # Read by Blender's legacy add-on loader (it parses this literal without running the module). The extension

@@ -1,4 +1,4 @@
-"""Wiring retargeting into Generate and the batch (no bpy): options -> keyedit, bone map <-> panel rows, the
+"""Keying a take onto a rig without bpy (mld_core.rig.keying): the options, the one road, bone map <-> panel rows, the
 messages that name missing bones, the detection cache, foot contacts of a take, batch argument checks."""
 
 from __future__ import annotations
