@@ -137,6 +137,7 @@ def fcurve_model_error(bpy, obj, baked) -> float:
 def measure(bpy, name: str, obj, joints: np.ndarray, contacts: np.ndarray, take: str, *, foot_lock: bool) -> dict:
     from mld_core.rig import bone_maps as bm
     from mld_core.rig import keyframes as ke
+    from mld_core.rig import fidelity
     from mld_core.rig import retarget as rt
     from blender_addon.scene import read_rig as rig_io
 
@@ -146,7 +147,7 @@ def measure(bpy, name: str, obj, joints: np.ndarray, contacts: np.ndarray, take:
     t0 = time.perf_counter()
     result = rt.retarget(joints, rig, det.bone_map.joints, parent_overrides=det.bone_map.parent_overrides)
     t_retarget = time.perf_counter() - t0
-    fk = rt.fidelity(result)
+    fk = fidelity.fidelity(result)
     fps = 20.0  # keep the source rate so Blender's frames line up with the source for the comparison
     t0 = time.perf_counter()
     baked = ke.bake_keys(result, ke.BakeOptions(fps=fps, frame_start=1, foot_lock=foot_lock), contacts=contacts)
@@ -157,7 +158,7 @@ def measure(bpy, name: str, obj, joints: np.ndarray, contacts: np.ndarray, take:
                                     contacts=contacts).stats["reduction_ratio"] for r in (24, 30)}
     frames = baked.frame_start + np.arange(baked.num_frames)
     bl_joints = blender_joint_positions(bpy, obj, dict(zip(result.joints, result.bones)), frames)
-    bl = rt.fidelity(result, target_joints=bl_joints)
+    bl = fidelity.fidelity(result, target_joints=bl_joints)
     # The same keys through our FK: checks the pose convention (rest matrices, parents, quaternions, location).
     quats, root_loc = ke.baked_pose(baked, result)
     played = rt.RetargetResult(result.bones, result.joints, quats, result.root_bone, root_loc, result.scale,

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from mld_core.rig import bone_maps as bm
+from mld_core.rig import fidelity
 from mld_core.rig import retarget as rt
 from mld_core.motion import skeleton as sk
 
@@ -140,7 +141,7 @@ def test_effectors_follow_the_source_continuously(fixtures, rig_name, takes, gol
     rig, joints, overrides = _rig_and_map(fixtures, rig_name)
     for name, take in [*takes.items(), ("golden", golden)]:
         result = rt.retarget(take, rig, joints, parent_overrides=overrides)
-        fid = rt.fidelity(result)
+        fid = fidelity.fidelity(result)
         assert fid["effector_err_mean"] < 0.05, (name, fid)
         for eff in ("left_wrist", "right_wrist", "head"):
             assert fid[f"{eff}_err"] < 0.05, (name, eff, fid)
@@ -171,7 +172,7 @@ def test_planted_toes_stay_on_the_floor_when_the_source_foot_changes_length(fixt
             ankle, toe = J[f"{side}_ankle"], J[f"{side}_foot"]
             take[:, toe] = take[:, ankle] + shrink[:, None] * (take[:, toe] - take[:, ankle])
         result = rt.retarget(take, rig, joints, parent_overrides=overrides)
-        fid = rt.fidelity(result)
+        fid = fidelity.fidelity(result)
         assert fid["sink_cm"] < 0.01, fid
         assert fid["effector_err_mean"] < 0.05, fid
         wj, src = result.world_joints(), result.source_world
@@ -211,7 +212,7 @@ def test_feet_never_go_below_their_rest_height_on_standing_rigs(fixtures, rig_na
     wj = result.world_joints()
     below = {j: float(np.max(rest[result.rig.index(joints[j]), 2] - wj[j][:, 2])) for j in standing}
     assert max(below.values()) < 1e-6 * result.scale, below
-    assert rt.fidelity(result)["below_rest_height_cm"] < 1e-4
+    assert fidelity.fidelity(result)["below_rest_height_cm"] < 1e-4
     # Without the floor the dip goes through it.
     wp = plain.world_joints()
     assert max(float(np.max(rest[plain.rig.index(joints[j]), 2] - wp[j][:, 2])) for j in standing) > 0.02 * plain.scale
@@ -224,14 +225,14 @@ def test_walk_turn_keeps_its_direction_and_turn(fixtures, takes):
     rig, bmap = _fixture_rig(fixtures, "rigify_metarig")
     take = takes["dataset-2_walk-turn-left_normal_027"]
     result = rt.retarget(take, rig, bmap.joints)
-    fid = rt.fidelity(result)
+    fid = fidelity.fidelity(result)
     assert fid["turn_src_deg"] > 60  # the clip turns left (counter-clockwise seen from above)
     assert abs(fid["turn_rig_deg"] - fid["turn_src_deg"]) < 1.0
     # Facing -Y at frame 0 (Blender's front view), as the source faces +Z.
-    yaw = rt.facing_yaw(result.world_joints()["left_hip"], result.world_joints()["right_hip"])
+    yaw = fidelity.facing_yaw(result.world_joints()["left_hip"], result.world_joints()["right_hip"])
     assert abs(np.degrees(yaw[0])) < 20
     turned = rt.retarget(take, rig, bmap.joints, rt.RetargetOptions(yaw_deg=90))
-    yaw90 = rt.facing_yaw(turned.world_joints()["left_hip"], turned.world_joints()["right_hip"])
+    yaw90 = fidelity.facing_yaw(turned.world_joints()["left_hip"], turned.world_joints()["right_hip"])
     np.testing.assert_allclose(rt.wrap_angle(yaw90 - yaw), np.radians(90), atol=1e-6)
 
 
@@ -279,7 +280,7 @@ def test_unmapped_bones_stay_at_rest(fixtures, takes):
             np.testing.assert_array_equal(rot[:, i], np.tile([1.0, 0, 0, 0], (len(rot), 1)))
             np.testing.assert_array_equal(loc[:, i], 0.0)
     # Still follows: with the spine, neck, collars and toes unmapped, hands and feet land where they should.
-    fid = rt.fidelity(result)
+    fid = fidelity.fidelity(result)
     assert fid["left_wrist_err"] < 1e-6 and fid["effector_err_mean"] < 0.05, fid
 
 

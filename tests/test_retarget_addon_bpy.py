@@ -29,6 +29,7 @@ from blender_addon.scene import key_takes as apply
 from blender_addon.worker import generation
 from blender_addon.scene import write_action as keys
 from blender_addon.ui import operators
+from mld_core.rig import fidelity
 from mld_core.rig import retarget as rt
 from blender_addon.ui import retarget_panel as retarget_ui
 from mld_core.rig import keying as retarget_wiring
@@ -118,7 +119,7 @@ rig = rig_io.read_rig(obj)
 res = rt.retarget(take.joints, rig, bone_map.joints, parent_overrides=bone_map.parent_overrides, fps=take.fps)
 frames = range(scene.frame_start, scene.frame_start + res.num_frames)
 played = fid.blender_joint_positions(bpy, obj, dict(zip(res.joints, res.bones)), frames)
-fb = rt.fidelity(res, target_joints=played)
+fb = fidelity.fidelity(res, target_joints=played)
 out["fidelity"] = {{k: v for k, v in fb.items() if k.endswith(("_err", "_err_global")) or k in ("effector_err_mean", "sink_cm")}}
 
 # Push to NLA: a new track with the Action (and its slot) as a strip; the active Action is left alone
