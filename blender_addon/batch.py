@@ -89,7 +89,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--model", metavar="DIR", help="model folder (default: the bundled model)")
     parser.add_argument("--device", default="cpu", help="cpu, cuda, mps or auto (cpu)")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
-    parser.add_argument("--fps", type=float, default=None, help="scene frame rate (default: the file's, or 20 for a new scene)")
+    parser.add_argument("--fps", type=float, default=None,
+                        help="scene frame rate (default: the open file's, else the --rig file's, else 20)")
     parser.add_argument("--bvh-dir", metavar="DIR", help="also write each take as a BVH file here")
     parser.add_argument("--preview", metavar="PNG", help="render a strip of frames of the first take")
     parser.add_argument("--manifest", metavar="JSON", help="manifest path (default: OUT with .json)")
@@ -168,16 +169,68 @@ def headless(problem: str) -> str:
                            ": give a --bone-map file (the panel's Save Map... writes one)")
 
 
+def _rig_file_scene(path: Path) -> tuple[float | None, set[str], set[str]]:
+    """(frame rate, excluded collections, hidden collections) of the first scene of ``path``, read by linking it
+    for a moment (nothing of it stays in this file)."""
+    import bpy
+
+    with bpy.data.libraries.load(str(path), link=True) as (src, dst):
+        dst.scenes = list(src.scenes[:1])
+    scenes = [sc for sc in dst.scenes if sc is not None]
+    if not scenes:
+        return None, set(), set()
+    scene = scenes[0]
+    fps = scene.render.fps / (scene.render.fps_base or 1.0)
+    excluded, hidden = set(), set()
+    stack = list(scene.view_layers[0].layer_collection.children) if scene.view_layers else []
+    while stack:
+        layer = stack.pop()
+        if layer.exclude:
+            excluded.add(layer.collection.name)
+        if layer.hide_viewport:
+            hidden.add(layer.collection.name)
+        stack.extend(layer.children)
+    library = scene.library
+    bpy.data.scenes.remove(scene)
+    if library is not None:
+        bpy.data.libraries.remove(library)
+    return fps, excluded, hidden
+
+
+def _keep_collection_visibility(excluded: set[str], hidden: set[str]) -> None:
+    """Exclude or hide the appended collections that were so in the rig file's view layer."""
+    import bpy
+
+    stack = list(bpy.context.view_layer.layer_collection.children)
+    while stack:
+        layer = stack.pop()
+        name = layer.collection.name
+        if name in excluded:
+            layer.exclude = True
+        elif name in hidden:
+            layer.hide_viewport = True
+        stack.extend(layer.children)
+
+
 def _append_rig(path: Path, name: str | None):
-    """Append every object of ``path`` into the scene; returns the armature named ``name`` (or the only one)."""
+    """Append every object of ``path`` into the scene, in copies of the collections that held them (so what was
+    hidden there, such as Rigify's widget shapes, stays hidden); returns the armature named ``name`` (or the only
+    one)."""
     import bpy
 
     with bpy.data.libraries.load(str(path), link=False) as (src, dst):
         dst.objects = list(src.objects)
+        dst.collections = list(src.collections)
     objects = [o for o in dst.objects if o is not None]
+    collections = [c for c in dst.collections if c is not None]
+    nested = {child for c in collections for child in c.children}
+    scene_root = bpy.context.scene.collection
+    for collection in collections:
+        if collection not in nested and collection.name not in scene_root.children:
+            scene_root.children.link(collection)
     for obj in objects:
-        if obj.name not in bpy.context.scene.collection.all_objects:
-            bpy.context.scene.collection.objects.link(obj)
+        if not obj.users_collection:  # objects that stood only in the source scene's own collection
+            scene_root.objects.link(obj)
     armatures = [o for o in objects if o.type == "ARMATURE"]
     if name:
         found = [o for o in armatures if o.name == name]
@@ -282,7 +335,12 @@ def _prepare_scene(args, addon):
     rig = importlib.import_module(addon.__name__ + ".scene.canonical_armature")
     apply = importlib.import_module(addon.__name__ + ".scene.key_takes")
     if args.rig:
-        return scene, _append_rig(Path(args.rig), args.rig_object)
+        fps, excluded, hidden = _rig_file_scene(Path(args.rig))
+        if fps and not args.fps:  # the rig file's frame rate, unless --fps says otherwise
+            scene.render.fps, scene.render.fps_base = max(1, round(fps)), round(fps) / fps
+        obj = _append_rig(Path(args.rig), args.rig_object)
+        _keep_collection_visibility(excluded, hidden)
+        return scene, obj
     if args.bvh_rig:
         return scene, _import_bvh_rig(Path(args.bvh_rig), args.bvh_scale)
     if args.armature:

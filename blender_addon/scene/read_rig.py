@@ -18,6 +18,7 @@ def read_rig(obj) -> RigRest:
     bones = list(obj.data.bones)
     if not bones:
         raise ValueError(f"armature {obj.name!r} has no bones")
+    _update_transforms(obj)
     index = {b.name: i for i, b in enumerate(bones)}
     parents = [index[b.parent.name] if b.parent is not None else -1 for b in bones]
     matrices = np.array([[list(row) for row in b.matrix_local] for b in bones], dtype=np.float64)  # (B, 4, 4)
@@ -31,6 +32,17 @@ def read_rig(obj) -> RigRest:
         use_connect=[b.use_connect for b in bones],
         name=obj.name,
     )
+
+
+def _update_transforms(obj) -> None:
+    """Bring ``obj.matrix_world`` up to date: an object appended, linked or moved by a script keeps a stale
+    (often identity) world matrix until the view layer is evaluated, and the rig's rotation and scale (a Mixamo FBX
+    import: 90 degrees about X, scale 0.01) would be ignored."""
+    import bpy
+
+    view_layer = getattr(bpy.context, "view_layer", None)
+    if view_layer is not None:  # (an object just linked is not even listed in view_layer.objects before this)
+        view_layer.update()
 
 
 def rotation_modes(obj) -> dict[str, str]:
