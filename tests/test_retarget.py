@@ -221,6 +221,30 @@ def test_feet_never_go_below_their_rest_height_on_standing_rigs(fixtures, rig_na
         np.testing.assert_allclose(wj[j], wp[j] + (wj["pelvis"] - wp["pelvis"]), atol=1e-6 * result.scale)
 
 
+def test_the_floor_holds_on_a_rig_whose_origin_is_at_its_hips(takes):
+    """Most mocap BVH rigs rest with the root at the object origin and the feet about 0.9 m below it. The take stands
+    on the origin plane like on any rig; its dipping feet must be held at their standing heights above that plane,
+    not at their absolute rest heights (0.9 m lower, so the floor never held and toes went through)."""
+    canonical = rt.canonical_rig()
+    drop = np.eye(4)
+    drop[2, 3] = -canonical.heads[canonical.index("pelvis"), 2]  # the hips at the origin, the feet below it
+    rig = rt.RigRest(canonical.names, canonical.parents, drop @ canonical.matrices, canonical.tails + drop[:3, 3])
+    joints = {n: n for n in canonical.names}
+    take = takes["dataset-2_walk-turn-left_normal_027"].copy()
+    dip = 0.04 * np.exp(-0.5 * ((np.arange(len(take)) - 20) / 3.0) ** 2)  # (T,) a 4 cm dip around frame 20
+    for name in ("left_ankle", "left_foot", "right_ankle", "right_foot"):
+        take[:, J[name], 1] -= dip
+    standing = rt.standing_heights(rig, joints)
+    assert standing is not None and all(0 <= h < 0.2 for h in standing.values())
+    result = rt.retarget(take, rig, joints)
+    wj = result.world_joints()
+    below = max(float(np.max(standing[j] - wj[j][:, 2])) for j in standing)  # the origin plane is z = 0
+    assert below < 1e-6, below
+    assert fidelity.fidelity(result)["below_rest_height_cm"] < 1e-4
+    plain = rt.retarget(take, rig, joints, rt.RetargetOptions(floor=False))
+    assert max(float(np.max(standing[j] - plain.world_joints()[j][:, 2])) for j in standing) > 0.02
+
+
 def test_walk_turn_keeps_its_direction_and_turn(fixtures, takes):
     rig, bmap = _fixture_rig(fixtures, "rigify_metarig")
     take = takes["dataset-2_walk-turn-left_normal_027"]

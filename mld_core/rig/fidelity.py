@@ -78,9 +78,8 @@ def fidelity(result: RetargetResult, target_joints: Mapping[str, np.ndarray] | N
         sink = max(sink, float(np.max(z_src[down] - wj[j][down, 2])))
     out["sink_cm"] = max(0.0, sink) * 100
     if standing is not None:
-        # Also: how far a foot joint goes below its own rest height above the floor (the sole going under, for
-        # rigs whose rest pose is a plausible standing pose).
-        floor = min(floor, min(rest[j][2] for j in standing))
+        # Also: how far a foot joint goes below its own rest height above the floor the take stands on (the rig's
+        # origin; the sole going under, for rigs whose rest pose is a plausible standing pose).
         below = max(float(np.max(standing[j] - (wj[j][:, 2] - floor))) for j in standing)
         out["below_rest_height_cm"] = max(0.0, below) * 100
     out["lowest_foot_cm"] = (min(float(np.min(wj[j][:, 2])) for j in feet) - floor) * 100

@@ -595,11 +595,13 @@ def place_source(
             lateral[:, 2] = 0.0
             turn = axis_angle_matrix(normalize(lateral), np.full(len(foot), rig_pitch - src_pitch))
             world[:, JOINT_INDEX[toe]] = world[:, JOINT_INDEX[ankle]] + np.einsum("tij,tj->ti", turn, foot)
-        # The floor: no foot joint lower than it stands at rest (generated feet dip a few centimetres below
-        # their own standing height); the legs and feet are solved to reach the lifted joints.
+        # The floor: no foot joint lower above the floor the take stands on (the rig's origin) than it stands
+        # above its own soles at rest (generated feet dip a few centimetres below their standing height); the legs
+        # and feet are solved to reach the lifted joints. (A BVH rig rests with its feet below its origin, at the
+        # hips: its absolute rest heights are not the floor the take walks on.)
         for joint in standing:
-            z_rest = heads[rig.index(bone_map[joint]), 2]
-            world[:, JOINT_INDEX[joint], 2] = np.maximum(world[:, JOINT_INDEX[joint], 2], z_rest)
+            z_min = origin[2] + standing[joint]
+            world[:, JOINT_INDEX[joint], 2] = np.maximum(world[:, JOINT_INDEX[joint], 2], z_min)
     return world, scale
 
 
