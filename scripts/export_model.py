@@ -24,7 +24,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from mld_core.checkpoint import DEFAULT_MODEL_DIR, load_config, load_weights, save_model  # noqa: E402
+from mld_core.checkpoint import DEFAULT_MODEL_DIR, CheckpointError, load_config, load_weights, save_model  # noqa: E402
 from mld_core.models.denoiser import LatentDenoiser  # noqa: E402
 from mld_core.models.vae import MotionVAE  # noqa: E402
 
@@ -71,6 +71,23 @@ def write_coverage_index(run: Path, folder: Path, config, data: Path | None) -> 
               file=sys.stderr)
 
 
+MODEL_FILES = {"config.json", "vae.safetensors", "denoiser.safetensors", "MODEL_CARD.md", "coverage_index.npz"}
+
+
+def out_problem(out: Path, overwrite: bool) -> str:
+    """Why ``out`` cannot take the exported model ('' when it can): a file, a folder that is not empty without
+    --overwrite, or one holding anything an export does not write (that is never deleted)."""
+    if out.exists() and not out.is_dir():
+        return f"{out} is a file, not a model folder"
+    entries = sorted(p.name for p in out.iterdir()) if out.is_dir() else []
+    if entries and not overwrite:
+        return f"{out} exists; pass --overwrite"
+    foreign = [name for name in entries if name not in MODEL_FILES]
+    if foreign:
+        return f"{out} holds {', '.join(foreign[:3])}, which an export does not write; move it out first"
+    return ""
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path)
@@ -81,12 +98,17 @@ def main(argv=None) -> int:
     ap.add_argument("--data", type=Path, default=None, help="data folder to build the coverage index from "
                     "(when the run has none)")
     args = ap.parse_args(argv)
-    config = load_config(args.run)
+    try:
+        config = load_config(args.run)
+    except CheckpointError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     if config.denoiser is None:
         print(f"error: {args.run} has no denoiser", file=sys.stderr)
         return 2
-    if args.out.exists() and any(args.out.iterdir()) and not args.overwrite:
-        print(f"error: {args.out} exists; pass --overwrite", file=sys.stderr)
+    problem = out_problem(args.out, args.overwrite)
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
         return 2
     vae, den = MotionVAE(config.vae), LatentDenoiser(config.denoiser)
     load_weights(args.run / "vae.safetensors", vae)

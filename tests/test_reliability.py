@@ -252,3 +252,26 @@ def test_train_refuses_bad_data_and_settings_and_leaves_no_run_folder(tmp_path, 
 @pytest.mark.parametrize("argv", [["evaluate", "t2m", "--data", "x", "--threads", "-1"], ["bench", "--threads", "-1"]])
 def test_evaluate_and_bench_refuse_negative_threads(tmp_path, capsys, argv):
     refused(argv, tmp_path, capsys, "--threads must be between")
+
+
+def test_export_model_never_deletes_what_it_did_not_write(model, tmp_path, capsys):
+    import sys
+
+    sys.path.insert(0, str(REPO / "scripts"))
+    import export_model
+
+    out = tmp_path / "shipped"
+    assert export_model.main([str(model), "--out", str(out)]) == 0
+    (out / "my_notes.md").write_text("mine")
+    before = snapshot(tmp_path)
+    for argv, words in [([str(model), "--out", str(out), "--overwrite"], "my_notes.md"),
+                        ([str(model), "--out", str(out)], "pass --overwrite"),
+                        ([str(tmp_path / "no_run"), "--out", str(tmp_path / "x")], "model folder not found"),
+                        ([str(model), "--out", str(out / "my_notes.md")], "is a file")]:
+        capsys.readouterr()
+        assert export_model.main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert words in err and "Traceback" not in err, err
+        assert snapshot(tmp_path) == before
+    (out / "my_notes.md").unlink()
+    assert export_model.main([str(model), "--out", str(out), "--overwrite"]) == 0
