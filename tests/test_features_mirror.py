@@ -77,6 +77,11 @@ def test_features_of_mirrored_joints_swap_left_and_right_channels(golden):
         ("steps leftward, then rightwards", "steps rightward, then leftwards"),
         ("left-handed throw", "right-handed throw"),
         ("a bright light; copyright", "a bright light; copyright"),  # whole words only
+        # "left", the past of "leave", is not a side
+        ("he left the room waving his right hand", "he left the room waving his left hand"),
+        ("she has left, then someone turns left", "she has left, then someone turns right"),
+        ("a man came and left", "a man came and left"),
+        ("a person raises the left hand and left leg", "a person raises the right hand and right leg"),
         ("", ""),
     ],
 )

@@ -358,9 +358,37 @@ def _match_case(word: str, like: str) -> str:
     return word
 
 
+# "left" is also the past of "leave" ("he left the room", "she has left"): after a subject or an auxiliary and
+# not before a body part or side word, it is the verb and stays.
+_LEAVERS = {"he", "she", "they", "i", "we", "you", "it", "who", "that", "person", "man", "woman", "someone",
+            "somebody", "one", "has", "have", "had", "just", "already", "never"}
+_SIDE_NOUNS = {"hand", "hands", "arm", "arms", "leg", "legs", "foot", "feet", "side", "shoulder", "knee", "elbow",
+               "wrist", "hip", "ankle", "toe", "heel", "fist", "palm", "turn", "and", "or"}
+_WORD = re.compile(r"[A-Za-z']+")
+
+
+def _verb_left(text: str, start: int, end: int) -> bool:
+    """Whether the "left" at text[start:end] follows a subject or an auxiliary and no body part or side word
+    follows it ("and" counts only after "came": "came and left")."""
+    before, after = _WORD.findall(text[:start]), _WORD.findall(text[end:])
+    previous = before[-1].lower() if before else ""
+    following = after[0].lower() if after else ""
+    if previous == "and":
+        return len(before) >= 2 and before[-2].lower() == "came" and following not in _SIDE_NOUNS
+    return previous in _LEAVERS and following not in _SIDE_NOUNS
+
+
 def mirror_text(text: str) -> str:
-    """Swap left/right and clockwise/counterclockwise words (whole words, keeping their case)."""
-    return _TEXT_PATTERN.sub(lambda m: _match_case(_TEXT_SWAPS[m.group(0).lower()], m.group(0)), text)
+    """Swap left/right and clockwise/counterclockwise words (whole words, keeping their case); "left" as the past of
+    "leave" ("he left the room") is not a side and stays."""
+
+    def swap(m: re.Match) -> str:
+        word = m.group(0)
+        if word.lower() == "left" and _verb_left(text, m.start(), m.end()):
+            return word
+        return _match_case(_TEXT_SWAPS[word.lower()], word)
+
+    return _TEXT_PATTERN.sub(swap, text)
 
 
 MIN_STD = 1e-8
