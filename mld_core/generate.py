@@ -74,8 +74,22 @@ def _prompt_lines(args) -> list[PromptLine]:
     return [PromptLine(0, inputs.check_prompt(args.prompt), None)]
 
 
-def _checked_args(args) -> tuple[list[PromptLine], list[float], dict]:
-    """Every input checked before the model loads or anything is written: (lines, seconds per line, outputs)."""
+def _constraints(args):
+    """--keys, --path and --loop as one mld_core.constraints.Constraints (empty when none is given)."""
+    from mld_core import constraints as C
+
+    items = []
+    if args.keys is not None:
+        items.append(C.read_keys(args.keys))
+    if args.path is not None:
+        items.append(C.read_path(args.path))
+    if args.loop:
+        items.append(C.Loop())
+    return C.Constraints(items)
+
+
+def _checked_args(args) -> tuple[list[PromptLine], list[float], object]:
+    """Every input checked before the model loads or anything is written: (lines, seconds per line, constraints)."""
     inputs.check_threads(args.threads, "--threads")
     lines = _prompt_lines(args)
     variants = inputs.int_in_range(args.variants, "--variants", 1, 64)
@@ -92,12 +106,17 @@ def _checked_args(args) -> tuple[list[PromptLine], list[float], dict]:
     for line in lines:
         what = f"line {line.line}: length" if line.line else "--seconds"
         seconds.append(inputs.check_seconds(line.seconds(default), limits, what))
+    constraints = _constraints(args)
+    if constraints:
+        for s in seconds:
+            constraints.check_frames(int(round(s * limits.fps)))
     rows = len(lines) * (args.best or variants)
     outputs = {"--out": args.out}
     if args.bvh is not None:
         outputs.update({f"--bvh ({p.name})": p for p in bvh_paths(args.bvh, rows)})
-    inputs.check_outputs(outputs, {"--prompts": args.prompts}, overwrite=args.overwrite)
-    return lines, seconds, outputs
+    inputs.check_outputs(outputs, {"--prompts": args.prompts, "--keys": args.keys, "--path": args.path},
+                         overwrite=args.overwrite)
+    return lines, seconds, constraints
 
 
 def _load(args):
@@ -120,6 +139,15 @@ def _warn_long_prompts(encoder, lines) -> None:
                   f"only the first {encoder.max_tokens} are used", file=sys.stderr)
 
 
+def _warn_unmet(out) -> None:
+    """One warning line per constraint a take did not meet, with its residual: the best effort is still written."""
+    for row, residuals in enumerate(out.residuals or []):
+        for kind, metres, met in residuals:
+            if not met:
+                print(f"warning: take {row} (seed {out.seeds[row]}): the {kind} constraint is off by "
+                      f"{metres * 100:.1f} cm (best effort)", file=sys.stderr)
+
+
 def run(args) -> int:
     from mld_core import take_report
     from mld_core.cli import UsageError
@@ -136,7 +164,7 @@ def run(args) -> int:
 
 def _run(args, take_report) -> int:
     # 1. Inputs and output paths, all checked before any work.
-    lines, seconds, _ = _checked_args(args)
+    lines, seconds, constraints = _checked_args(args)
     if args.threads:
         import torch
 
@@ -159,7 +187,7 @@ def _run(args, take_report) -> int:
     # 3. Generate: line i, variant v uses seed + i * variants + v (the batch's rule with one variant per line).
     seeds = [args.seed + i * args.variants for i in range(len(lines))]
     kwargs = dict(seconds=seconds, num_inference_steps=args.steps, guidance_scale=args.guidance, seed=seeds,
-                  num_variants=args.variants, rank=args.best is not None)
+                  num_variants=args.variants, rank=args.best is not None, constraints=constraints or None)
     if cond == "action":
         actions = [args.action] * len(prompts) if args.action else prompts
         out = pipe(prompts, actions=actions, **kwargs)
@@ -167,6 +195,7 @@ def _run(args, take_report) -> int:
         out = pipe(prompts, unconditional=True, **kwargs)
     else:
         out = pipe(prompts, **kwargs)
+    _warn_unmet(out)
     out = take_report.keep_best(out, args.variants, args.best)
     if out.badges is not None:
         print(take_report.badge_table(out))
@@ -198,6 +227,12 @@ def register(groups) -> None:
                         "print the table and keep each prompt's K best, best first")
     p.add_argument("--strict", action="store_true",
                    help="refuse a prompt this model has not learned (coverage 'unknown'): exit 2, nothing written")
+    p.add_argument("--keys", type=Path, default=None,
+                   help='poses to hit: {"fps": 20, "keys": [{"frame": 40, "joints": {"pelvis": [x, y, z]}}]} '
+                        "(docs/control.md)")
+    p.add_argument("--path", type=Path, default=None,
+                   help='a root path on the ground: {"fps": 20, "points": [[frame, x, z], ...]} (docs/control.md)')
+    p.add_argument("--loop", action="store_true", help="make the last frame continue into the first")
     p.add_argument("--model", type=Path, default=None, help="a model folder (default: the bundled model)")
     p.add_argument("--unconditional", action="store_true", help="ignore text: sample the unconditional model")
     p.add_argument("--action", default=None, help="an action label, for action-conditioned models")

@@ -23,6 +23,8 @@ from mld_core.inputs import InputError
 from mld_core import inputs
 from mld_core.checkpoint import DEFAULT_MODEL_DIR, CheckpointError, ModelConfig, load_config, load_weights
 from mld_core.models.denoiser import LatentDenoiser
+from mld_core.constraints import planted_foot_speed
+from mld_core.motion.features import FOOT_CONTACT, features_to_joints
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import DDIMScheduler
 
@@ -45,6 +47,7 @@ class MLDOutput:
     model_id: str = ""
     timings: dict = field(default_factory=dict)
     badges: list | None = None  # per row a mld_core.eval.quality.Badges when generated with rank=True
+    residuals: list | None = None  # per row [(kind, metres, met)] when generated with constraints
 
 
 def _as_list(value, n: int, name: str) -> list:
@@ -146,6 +149,49 @@ class MLDPipeline:
             feats[i, n:] = 0.0
         return feats.astype(np.float32)
 
+    def meet_constraints(self, z: torch.Tensor, lengths: torch.Tensor, constraints) -> np.ndarray:
+        """Denormalised features (B, T, F) of the sampled latents z (B, n, d) refined to meet ``constraints``: first
+        Adam steps on the latent through the decoder (the motion stays one the model makes), then on the decoded
+        features themselves with a smoothness term (what a latent of this size cannot reach exactly). All rows
+        must have one length."""
+        if len(set(lengths.tolist())) != 1:
+            raise InputError("constraints need every motion of a call to have the same length")
+        constraints.check_frames(int(lengths[0]))
+        n = int(lengths[0])
+        with torch.inference_mode(False), torch.enable_grad():
+            mean, std = (torch.tensor(a, dtype=torch.float32, device=self.device) for a in (self.mean, self.std))
+            lengths = lengths.clone()
+            z0 = z.detach().clone()
+
+            def decode(latent):  # (B, n, d) -> normalised features (B, T, F)
+                return self.vae.decode(latent / self.config.latent_scale + self.config.latent_mean, lengths).float()[:, :n]
+
+            z_opt = z0.clone().requires_grad_(True)
+            opt = torch.optim.Adam([z_opt], lr=constraints.lr)
+            for _ in range(constraints.steps):  # 5a. the latent
+                opt.zero_grad()
+                joints = features_to_joints(decode(z_opt) * std + mean)  # (B, T, 22, 3), differentiable
+                loss = constraints.cost(joints) + constraints.prior_weight * ((z_opt - z0) ** 2).mean()
+                loss.backward()
+                opt.step()
+            x0 = decode(z_opt).detach()
+            contacts = (x0 * std + mean)[..., FOOT_CONTACT] > 0.5  # (B, T, 4) ankles and toes the sample plants
+            x = x0.clone().requires_grad_(True)
+            opt = torch.optim.Adam([x], lr=constraints.feature_lr)
+            for _ in range(constraints.feature_steps):  # 5b. the features, kept smooth and near the decoded ones
+                opt.zero_grad()
+                accel = x[:, 2:] - 2 * x[:, 1:-1] + x[:, :-2]
+                joints = features_to_joints(x * std + mean)
+                loss = (constraints.cost(joints) + constraints.smooth_weight * (accel ** 2).mean()
+                        + constraints.prior_weight * ((x - x0) ** 2).mean()
+                        + constraints.planted_weight * planted_foot_speed(joints, contacts))
+                loss.backward()
+                opt.step()
+            features = (x.detach() * std + mean).cpu().numpy()
+        out = np.zeros((len(features), int(lengths.max()), features.shape[-1]), np.float32)
+        out[:, :n] = features
+        return out
+
     # -- conditions ---------------------------------------------------------------------------------------------
     def _condition(self, prompts: list, actions: list | None, kind: str) -> tuple[torch.Tensor, torch.Tensor]:
         """(cond tokens, null tokens), each (B, C, d)."""
@@ -194,11 +240,13 @@ class MLDPipeline:
                  actions: Sequence | None = None, num_inference_steps: int | None = None,
                  guidance_scale: float | None = None, seed: int | Sequence[int] = 0, num_variants: int = 1,
                  callback: Callable[[int, int], bool | None] | None = None, unconditional: bool = False,
-                 rank: bool = False) -> MLDOutput:
+                 rank: bool = False, constraints=None) -> MLDOutput:
         """Generate ``num_variants`` motions per prompt; row i*num_variants + v uses seed ``seed + v``, or
         ``seed[i] + v`` when ``seed`` is a sequence (one per prompt). Any row equals the single run with its seed.
         ``unconditional`` samples with the null condition (the prompts then only label the rows). ``rank`` scores
-        every row (``out.badges``) and orders each prompt's variants best first (mld_core.eval.quality.best_first)."""
+        every row (``out.badges``) and orders each prompt's variants best first (mld_core.eval.quality.best_first).
+        ``constraints`` (a ``mld_core.constraints.Constraints``: poses to hit, a root path, a loop) refines each
+        sampled latent to meet them; ``out.residuals`` says how well each row did."""
         if self.denoiser is None:
             raise CheckpointError("this model folder has only a VAE; sample with sample_prior() or train a denoiser")
         timings = {}
@@ -263,14 +311,22 @@ class MLDPipeline:
                 raise Cancelled(f"cancelled at step {k + 1} of {total}")
         timings["diffusion_s"] = time.perf_counter() - t0
 
-        # 5. Decode x = D(z_0) and recover joints.
+        # 5. Decode x = D(z_0); with constraints, refine z_0 and then x until they are met (see meet_constraints).
         t0 = time.perf_counter()
-        features = self.latents_to_features(z, lengths)
+        if constraints:
+            features = self.meet_constraints(z, lengths, constraints)
+            timings["constraints_s"] = time.perf_counter() - t0
+        else:
+            features = self.latents_to_features(z, lengths)
         timings["decode_s"] = time.perf_counter() - t0
+
+        # 6. Joints from the features.
         joints = self.joints_from_features(features, lengths.tolist())
         out = MLDOutput(features, joints, lengths.cpu().numpy(), row_prompts, seeds, self.config.fps,
                         self.model_id, timings)
-        if rank:  # 6. Badges per row; each prompt's variants best first.
+        if constraints:
+            out.residuals = [constraints.residuals(joints[i, :n]) for i, n in enumerate(out.lengths)]
+        if rank:  # 7. Badges per row; each prompt's variants best first.
             from mld_core.eval.quality import rank_output
 
             t0 = time.perf_counter()
@@ -294,8 +350,6 @@ class MLDPipeline:
 
     @staticmethod
     def joints_from_features(features: np.ndarray, lengths: list) -> np.ndarray:
-        from mld_core.motion.features import features_to_joints
-
         B, T = features.shape[:2]
         joints = np.zeros((B, T, 22, 3), np.float32)
         for i, n in enumerate(lengths):

@@ -1,0 +1,214 @@
+"""What a take must hit, as differentiable costs on its joints: poses at given frames, a root path on the ground,
+a loop. The pipeline refines its sampled latent, then the decoded features, against them (stage 5 of
+``MLDPipeline.__call__``, ``MLDPipeline.meet_constraints``); the free path never touches this module.
+
+Joints are the pipeline's output frame: metres, Y up, the root starting at the origin facing +Z. Frames are model
+frames (20 fps); files with another fps are converted when read (:func:`read_keys`, :func:`read_path`).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from mld_core.inputs import InputError, finite_number, whole_number
+from mld_core.motion.skeleton import JOINT_NAMES
+
+JOINT_INDEX = {name: i for i, name in enumerate(JOINT_NAMES)}
+
+
+@dataclass
+class PoseKeys:
+    """Target positions (metres) of some joints at some frames: ``targets[frame][joint] = (x, y, z)``."""
+
+    targets: dict[int, dict[str, Sequence[float]]]
+    weight: float = 1.0
+    tolerance_m: float = 0.03  # a residual above this is reported as not met
+
+    def last_frame(self) -> int:
+        return max(self.targets)
+
+    def cost(self, joints: torch.Tensor) -> torch.Tensor:
+        """Mean squared distance (m^2) of the keyed joints from their targets; joints (B, T, 22, 3)."""
+        frames, index, target = self._arrays(joints)
+        return ((joints[:, frames, index] - target) ** 2).sum(-1).mean()
+
+    def residual(self, joints: np.ndarray) -> float:
+        """Mean distance (m) of the keyed joints from their targets; joints (T, 22, 3)."""
+        frames, index, target = self._arrays(torch.as_tensor(joints)[None])
+        return float(np.linalg.norm(np.asarray(joints)[frames, index] - target.numpy(), axis=-1).mean())
+
+    def _arrays(self, joints: torch.Tensor):
+        rows = [(f, JOINT_INDEX[j], p) for f, keyed in sorted(self.targets.items()) for j, p in keyed.items()]
+        frames = [r[0] for r in rows]
+        index = [r[1] for r in rows]
+        target = torch.tensor(np.array([r[2] for r in rows], np.float32), dtype=joints.dtype)
+        return frames, index, target
+
+
+@dataclass
+class RootPath:
+    """Ground positions (x, z) of the pelvis at some frames, linearly interpolated in between."""
+
+    frames: Sequence[int]
+    points: np.ndarray  # (K, 2) metres
+    weight: float = 1.0
+    tolerance_m: float = 0.10
+
+    def last_frame(self) -> int:
+        return int(max(self.frames))
+
+    def dense(self) -> tuple[np.ndarray, np.ndarray]:
+        """(frames (N,), xz (N, 2)): every frame from the first to the last point."""
+        frames = np.arange(int(min(self.frames)), int(max(self.frames)) + 1)
+        pts = np.asarray(self.points, np.float64)
+        xz = np.stack([np.interp(frames, self.frames, pts[:, i]) for i in range(2)], -1)
+        return frames, xz
+
+    def cost(self, joints: torch.Tensor) -> torch.Tensor:
+        frames, xz = self.dense()
+        target = torch.tensor(xz, dtype=joints.dtype)
+        return ((joints[:, frames, 0][..., [0, 2]] - target) ** 2).sum(-1).mean()
+
+    def residual(self, joints: np.ndarray) -> float:
+        frames, xz = self.dense()
+        return float(np.linalg.norm(np.asarray(joints)[frames, 0][:, [0, 2]] - xz, axis=-1).mean())
+
+
+@dataclass
+class Loop:
+    """The last frame continues into the first: same pose (relative to the root's ground position) and velocity."""
+
+    weight: float = 1.0
+    tolerance_m: float = 0.01
+
+    def last_frame(self) -> int:
+        return 0
+
+    @staticmethod
+    def _local(joints):  # joints relative to the root's ground position, (..., T, 22, 3)
+        ground = joints[..., :1, :] * joints.new_tensor([1.0, 0.0, 1.0]) if isinstance(joints, torch.Tensor) \
+            else joints[..., :1, :] * np.array([1.0, 0.0, 1.0])
+        return joints - ground
+
+    def cost(self, joints: torch.Tensor) -> torch.Tensor:
+        local = self._local(joints)
+        gap = ((local[:, -1] - local[:, 0]) ** 2).sum(-1).mean()
+        jump = (((joints[:, 1] - joints[:, 0]) - (joints[:, -1] - joints[:, -2])) ** 2).sum(-1).mean()
+        return gap + jump
+
+    def residual(self, joints: np.ndarray) -> float:
+        local = self._local(np.asarray(joints))
+        return float(np.linalg.norm(local[-1] - local[0], axis=-1).max())
+
+
+@dataclass
+class Constraints:
+    """Everything a take must hit, and how hard to try (Adam steps on the sampled latent)."""
+
+    items: list = field(default_factory=list)
+    steps: int = 40  # Adam steps on the latent (through the decoder)
+    lr: float = 0.1
+    feature_steps: int = 120  # then on the decoded features
+    feature_lr: float = 0.05
+    smooth_weight: float = 0.1  # mean squared feature acceleration
+    prior_weight: float = 1e-3  # keeps latent and features near the sample: the motion stays the prompt's
+    planted_weight: float = 1.0  # planted feet (the sample's contact channels) keep still while the root moves
+
+    def __bool__(self) -> bool:
+        return bool(self.items)
+
+    def check_frames(self, frames: int) -> None:
+        for item in self.items:
+            if item.last_frame() >= frames:
+                raise InputError(f"a {type(item).__name__} constraint reaches frame {item.last_frame()}, but the "
+                                 f"take has {frames} frames (0..{frames - 1} at 20 fps)")
+
+    def cost(self, joints: torch.Tensor) -> torch.Tensor:
+        return sum(item.weight * item.cost(joints) for item in self.items)
+
+    def residuals(self, joints: np.ndarray) -> list[tuple[str, float, bool]]:
+        """Per constraint: (kind, residual in metres, met)."""
+        out = []
+        for item in self.items:
+            r = item.residual(joints)
+            out.append((type(item).__name__, r, r <= item.tolerance_m))
+        return out
+
+
+def planted_foot_speed(joints: torch.Tensor, contacts: torch.Tensor) -> torch.Tensor:
+    """Mean squared ground speed (m/frame)^2 of the ankles and toes while ``contacts`` (B, T, 4: left ankle, left
+    toe, right ankle, right toe) says they are planted; joints (B, T, 22, 3)."""
+    feet = joints[:, :, [7, 10, 8, 11]][..., [0, 2]]  # (B, T, 4, 2)
+    step = feet[:, 1:] - feet[:, :-1]  # (B, T-1, 4, 2)
+    planted = (contacts[:, 1:] & contacts[:, :-1]).to(joints.dtype)  # (B, T-1, 4)
+    return ((step ** 2).sum(-1) * planted).sum() / planted.sum().clamp(min=1.0)
+
+
+# -- files ----------------------------------------------------------------------------------------------------------
+def _load_json(path: Path, what: str):
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise InputError(f"cannot read {what} {path}: {exc.strerror or exc}") from None
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise InputError(f"{what} {path} is not valid JSON: {exc}") from None
+
+
+def _model_frame(frame, fps: float, where: str) -> int:
+    frame = whole_number(frame, f"{where}: frame")
+    if frame < 0:
+        raise InputError(f"{where}: frame must be 0 or more, got {frame}")
+    return int(round(frame * 20.0 / fps))
+
+
+def _fps(data: dict, where: str) -> float:
+    fps = finite_number(data.get("fps", 20), f"{where}: fps")
+    if not 1 <= fps <= 1000:
+        raise InputError(f"{where}: fps must be between 1 and 1000, got {fps:g}")
+    return fps
+
+
+def read_keys(path: Path) -> PoseKeys:
+    """``{"fps": 20, "keys": [{"frame": 40, "joints": {"pelvis": [x, y, z], ...}}, ...]}``."""
+    data = _load_json(path, "--keys")
+    if not isinstance(data, dict) or not isinstance(data.get("keys"), list) or not data["keys"]:
+        raise InputError(f"--keys {path}: expected {{\"fps\": 20, \"keys\": [{{\"frame\": F, \"joints\": {{...}}}}]}}")
+    fps = _fps(data, f"--keys {path}")
+    targets: dict[int, dict] = {}
+    for n, key in enumerate(data["keys"], start=1):
+        where = f"--keys {path}, key {n}"
+        if not isinstance(key, dict) or not isinstance(key.get("joints"), dict) or not key["joints"]:
+            raise InputError(f"{where}: expected {{\"frame\": F, \"joints\": {{\"pelvis\": [x, y, z], ...}}}}")
+        frame = _model_frame(key.get("frame"), fps, where)
+        for joint, point in key["joints"].items():
+            if joint not in JOINT_INDEX:
+                raise InputError(f"{where}: unknown joint {joint!r}; joints: {', '.join(JOINT_NAMES)}")
+            if not isinstance(point, list) or len(point) != 3:
+                raise InputError(f"{where}: {joint} must be [x, y, z] in metres")
+            targets.setdefault(frame, {})[joint] = [finite_number(v, f"{where}: {joint}") for v in point]
+    return PoseKeys(targets)
+
+
+def read_path(path: Path) -> RootPath:
+    """``{"fps": 20, "points": [[frame, x, z], ...]}`` (at least two points, frames increasing)."""
+    data = _load_json(path, "--path")
+    points = data.get("points") if isinstance(data, dict) else None
+    if not isinstance(points, list) or len(points) < 2:
+        raise InputError(f"--path {path}: expected {{\"fps\": 20, \"points\": [[frame, x, z], ...]}} with 2+ points")
+    fps = _fps(data, f"--path {path}")
+    frames, xz = [], []
+    for n, p in enumerate(points, start=1):
+        where = f"--path {path}, point {n}"
+        if not isinstance(p, list) or len(p) != 3:
+            raise InputError(f"{where}: expected [frame, x, z]")
+        frames.append(_model_frame(p[0], fps, where))
+        xz.append([finite_number(p[1], f"{where}: x"), finite_number(p[2], f"{where}: z")])
+    if any(b <= a for a, b in zip(frames, frames[1:])):
+        raise InputError(f"--path {path}: frames must increase")
+    return RootPath(frames, np.asarray(xz, np.float64))

@@ -1,0 +1,116 @@
+"""Directing a take: poses to hit, a root path, a loop (mld_core.constraints through MLDPipeline), and the command
+line's --keys / --path / --loop with their bad-input answers. Tiny seeded model: its motions are noise, but the
+constraints must still be met, and the free path must not change."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from mld_core.cli import main
+from mld_core.constraints import Constraints, Loop, PoseKeys, RootPath, read_keys, read_path
+from mld_core.inputs import InputError
+from mld_core.motion.skeleton import JOINT_NAMES
+from mld_core.testing import tiny_model
+from test_reliability import refused
+
+J = {n: i for i, n in enumerate(JOINT_NAMES)}
+# The tiny model's std is 0.05 everywhere: its features move 20x slower per step than the bundled model's.
+TINY = dict(feature_steps=300, feature_lr=0.5)
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    return tiny_model(tmp_path_factory.mktemp("tiny") / "model")
+
+
+@pytest.fixture(scope="module")
+def pipe(model):
+    from mld_core.pipeline import MLDPipeline
+
+    return MLDPipeline.from_pretrained(model)
+
+
+def test_pose_keys_are_hit_and_the_free_path_is_unchanged(pipe):
+    free = pipe("a person walks", seconds=3, seed=1, num_inference_steps=4)
+    again = pipe("a person walks", seconds=3, seed=1, num_inference_steps=4, constraints=Constraints([]))
+    np.testing.assert_array_equal(free.joints, again.joints)  # no constraint: the plain path, bit for bit
+    targets = {10: {"pelvis": [0.2, 0.9, 0.5], "left_wrist": [0.5, 1.4, 0.6]},
+               45: {"pelvis": [0.0, 0.85, 1.2], "right_ankle": [-0.1, 0.05, 1.3]}}
+    out = pipe("a person walks", seconds=3, seed=1, num_inference_steps=4,
+               constraints=Constraints([PoseKeys(targets)], **TINY))
+    errors = [np.linalg.norm(out.joints[0, f, J[j]] - p) for f, keyed in targets.items() for j, p in keyed.items()]
+    before = [np.linalg.norm(free.joints[0, f, J[j]] - p) for f, keyed in targets.items() for j, p in keyed.items()]
+    assert np.mean(errors) < 0.03 < np.mean(before), (errors, before)
+    kind, residual, met = out.residuals[0][0]
+    assert kind == "PoseKeys" and met and residual == pytest.approx(np.mean(errors), abs=1e-4)
+
+
+def test_root_path_and_loop(pipe):
+    path = RootPath([0, 59], np.array([[0.0, 0.0], [0.0, 2.0]]))  # 2 m straight ahead in 3 s
+    out = pipe("a person walks", seconds=3, seed=2, num_inference_steps=4, constraints=Constraints([path], **TINY))
+    frames, xz = path.dense()
+    assert np.linalg.norm(out.joints[0, frames, 0][:, [0, 2]] - xz, axis=-1).mean() < 0.10
+    looped = pipe("a person walks", seconds=3, seed=2, num_inference_steps=4, constraints=Constraints([Loop()], **TINY))
+    assert looped.residuals[0][0][1] < 0.02
+    free = pipe("a person walks", seconds=3, seed=2, num_inference_steps=4)
+    assert Loop().residual(free.joints[0]) > 0.05  # the free take does not loop by itself
+
+
+def test_constraints_beyond_the_take_are_refused(pipe):
+    with pytest.raises(InputError, match="reaches frame 80"):
+        pipe("a person walks", seconds=3, num_inference_steps=2, constraints=Constraints([PoseKeys({80: {"head": [0, 1, 0]}})]))
+    with pytest.raises(InputError, match="same length"):
+        pipe(["walk", "run"], seconds=[2, 3], num_inference_steps=2, constraints=Constraints([Loop()]))
+
+
+def test_key_and_path_files(tmp_path):
+    (tmp_path / "k.json").write_text(json.dumps({"fps": 40, "keys": [{"frame": 80, "joints": {"head": [0, 1.6, 1]}}]}))
+    keys = read_keys(tmp_path / "k.json")
+    assert keys.targets == {40: {"head": [0.0, 1.6, 1.0]}}  # frame 80 at 40 fps is model frame 40
+    (tmp_path / "p.json").write_text(json.dumps({"points": [[0, 0, 0], [20, 0.5, 1.0]]}))
+    assert read_path(tmp_path / "p.json").frames == [0, 20]
+
+
+@pytest.mark.slow
+def test_generate_with_keys_path_and_loop(tmp_path, capsys):  # the bundled model
+    (tmp_path / "k.json").write_text(json.dumps({"keys": [{"frame": 30, "joints": {"left_wrist": [0.4, 1.5, 0.3]}}]}))
+    (tmp_path / "far.json").write_text(json.dumps({"keys": [{"frame": 30, "joints": {"left_wrist": [40, 1.5, 0]}}]}))
+    (tmp_path / "p.json").write_text(json.dumps({"fps": 20, "points": [[0, 0, 0], [39, 0.0, 1.5]]}))
+    gen = ["generate", "a person waves", "--steps", "10", "--seconds", "2"]
+    assert main([*gen, "--keys", str(tmp_path / "k.json"), "--path", str(tmp_path / "p.json"), "--loop",
+                 "--out", str(tmp_path / "t.npz")]) == 0
+    joints = np.load(tmp_path / "t.npz")["joints"][0]
+    assert np.linalg.norm(joints[30, J["left_wrist"]] - [0.4, 1.5, 0.3]) < 0.05
+    capsys.readouterr()
+    # out of reach: the best effort is written, with one warning naming the residual
+    assert main([*gen, "--keys", str(tmp_path / "far.json"), "--out", str(tmp_path / "far.npz")]) == 0
+    err = capsys.readouterr().err
+    assert "the PoseKeys constraint is off by" in err and "Traceback" not in err
+    assert (tmp_path / "far.npz").is_file()
+
+
+@pytest.mark.parametrize("content, words", [
+    ("{broken", "not valid JSON"),
+    (json.dumps({"keys": []}), "expected"),
+    (json.dumps({"keys": [{"frame": 10, "joints": {"tail": [0, 0, 0]}}]}), "unknown joint 'tail'"),
+    (json.dumps({"keys": [{"frame": 10, "joints": {"head": [0, "x", 0]}}]}), "must be a number"),
+    (json.dumps({"keys": [{"frame": -1, "joints": {"head": [0, 1, 0]}}]}), "frame must be 0 or more"),
+    (json.dumps({"keys": [{"frame": 500, "joints": {"head": [0, 1, 0]}}]}), "reaches frame 500"),
+    (json.dumps({"fps": 0, "keys": [{"frame": 5, "joints": {"head": [0, 1, 0]}}]}), "fps must be between"),
+], ids=["json", "empty", "joint", "number", "negative", "beyond", "fps"])
+def test_generate_refuses_bad_key_files(model, tmp_path, capsys, content, words):
+    (tmp_path / "k.json").write_text(content)
+    refused(["generate", "a person waves", "--model", model, "--keys", tmp_path / "k.json", "--out",
+             tmp_path / "t.npz"], tmp_path, capsys, words)
+
+
+def test_generate_refuses_bad_paths(model, tmp_path, capsys):
+    (tmp_path / "p.json").write_text(json.dumps({"points": [[10, 0, 0], [5, 1, 1]]}))
+    refused(["generate", "a walk", "--model", model, "--path", tmp_path / "p.json", "--out", tmp_path / "t.npz"],
+            tmp_path, capsys, "frames must increase")
+    (tmp_path / "p.json").write_text(json.dumps({"points": [[0, 0, 0], [5, 1, 1]]}))
+    refused(["generate", "a walk", "--model", model, "--path", tmp_path / "p.json", "--out", tmp_path / "p.json"],
+            tmp_path, capsys, "same file")
