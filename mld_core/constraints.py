@@ -16,7 +16,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from mld_core.inputs import InputError, finite_number, whole_number
+from mld_core.inputs import InputError, check_prompt, finite_number, whole_number
 from mld_core.motion.skeleton import JOINT_NAMES
 
 JOINT_INDEX = {name: i for i, name in enumerate(JOINT_NAMES)}
@@ -108,6 +108,26 @@ class Loop:
 
 
 @dataclass
+class Continuation:
+    """The take's first frames repeat ``joints`` (K, 22, 3), given in the take's own frame (root at the origin facing
+    +Z at the first of them): how a take continues another (``MLDPipeline.sequence``)."""
+
+    joints: np.ndarray
+    weight: float = 1.0
+    tolerance_m: float = 0.02
+
+    def last_frame(self) -> int:
+        return len(self.joints) - 1
+
+    def cost(self, joints: torch.Tensor) -> torch.Tensor:
+        target = torch.as_tensor(np.asarray(self.joints, np.float32), dtype=joints.dtype)
+        return ((joints[:, : len(target)] - target) ** 2).sum(-1).mean()
+
+    def residual(self, joints: np.ndarray) -> float:
+        return float(np.linalg.norm(np.asarray(joints)[: len(self.joints)] - self.joints, axis=-1).mean())
+
+
+@dataclass
 class Constraints:
     """Everything a take must hit, and how hard to try (Adam steps on the sampled latent)."""
 
@@ -193,6 +213,24 @@ def read_keys(path: Path) -> PoseKeys:
                 raise InputError(f"{where}: {joint} must be [x, y, z] in metres")
             targets.setdefault(frame, {})[joint] = [finite_number(v, f"{where}: {joint}") for v in point]
     return PoseKeys(targets)
+
+
+def read_sequence(path: Path) -> list[tuple[str, float]]:
+    """``[{"prompt": "a person walks forward", "seconds": 3.0}, ...]`` (at least one segment)."""
+    data = _load_json(path, "--sequence")
+    if not isinstance(data, list) or not data:
+        raise InputError(f"--sequence {path}: expected [{{\"prompt\": \"...\", \"seconds\": 3.0}}, ...]")
+    segments = []
+    for n, seg in enumerate(data, start=1):
+        where = f"--sequence {path}, segment {n}"
+        if not isinstance(seg, dict) or not isinstance(seg.get("prompt"), str):
+            raise InputError(f"{where}: expected {{\"prompt\": \"...\", \"seconds\": 3.0}}")
+        try:
+            prompt = check_prompt(seg["prompt"])
+        except InputError as exc:
+            raise InputError(f"{where}: {exc}") from None
+        segments.append((prompt, finite_number(seg.get("seconds", 4.0), f"{where}: seconds")))
+    return segments
 
 
 def read_path(path: Path) -> RootPath:

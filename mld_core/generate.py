@@ -63,8 +63,10 @@ def write_bvhs(path: Path, out, fps: int, outputs: OutputSet) -> list[Path]:
 
 
 def _prompt_lines(args) -> list[PromptLine]:
-    if args.prompt is not None and args.prompts is not None:
-        raise InputError("give a PROMPT or --prompts FILE, not both")
+    if sum(x is not None for x in (args.prompt, args.prompts, args.sequence)) > 1:
+        raise InputError("give one of a PROMPT, --prompts FILE or --sequence FILE")
+    if args.sequence is not None:
+        return _sequence_lines(args)
     if args.prompts is not None:
         return read_prompt_file(args.prompts)
     if (args.unconditional or args.action) and not (args.prompt or "").strip():
@@ -72,6 +74,30 @@ def _prompt_lines(args) -> list[PromptLine]:
     if args.prompt is None or not args.prompt.strip():
         raise InputError("empty prompt: type what the motion should be, or pass --unconditional")
     return [PromptLine(0, inputs.check_prompt(args.prompt), None)]
+
+
+SEQUENCE_OVERLAP_S = 0.5  # each later segment also makes the previous one's last half second
+
+
+def _sequence_lines(args) -> list[PromptLine]:
+    """--sequence segments as prompt lines (their seconds as frames); refused with what a sequence cannot take."""
+    from mld_core.constraints import read_sequence
+
+    clashes = [flag for flag, on in (("--variants", args.variants != 1), ("--best", args.best is not None),
+                                     ("--keys", args.keys is not None), ("--path", args.path is not None),
+                                     ("--loop", args.loop), ("--action", bool(args.action)),
+                                     ("--unconditional", args.unconditional)) if on]
+    if clashes:
+        raise InputError(f"--sequence makes one motion from its segments: drop {', '.join(clashes)}")
+    segments = read_sequence(args.sequence)
+    limits = inputs.model_limits(args.model)
+    lines = []
+    for n, (text, seconds) in enumerate(segments, start=1):
+        extra = SEQUENCE_OVERLAP_S if n > 1 else 0.0
+        inputs.check_seconds(seconds + extra, limits, f"--sequence segment {n}: length" + (
+            f" (+ {SEQUENCE_OVERLAP_S:g} s overlap)" if extra else ""))
+        lines.append(PromptLine(n, text, int(round(seconds * inputs.MODEL_FPS))))
+    return lines
 
 
 def _constraints(args):
@@ -105,16 +131,18 @@ def _checked_args(args) -> tuple[list[PromptLine], list[float], object]:
     seconds = []
     for line in lines:
         what = f"line {line.line}: length" if line.line else "--seconds"
-        seconds.append(inputs.check_seconds(line.seconds(default), limits, what))
+        length = line.seconds(default)  # a sequence's segments were checked with their overlap
+        seconds.append(length if args.sequence is not None else inputs.check_seconds(length, limits, what))
     constraints = _constraints(args)
     if constraints:
         for s in seconds:
             constraints.check_frames(int(round(s * limits.fps)))
-    rows = len(lines) * (args.best or variants)
+    rows = 1 if args.sequence is not None else len(lines) * (args.best or variants)
     outputs = {"--out": args.out}
     if args.bvh is not None:
         outputs.update({f"--bvh ({p.name})": p for p in bvh_paths(args.bvh, rows)})
-    inputs.check_outputs(outputs, {"--prompts": args.prompts, "--keys": args.keys, "--path": args.path},
+    inputs.check_outputs(outputs, {"--prompts": args.prompts, "--keys": args.keys, "--path": args.path,
+                                   "--sequence": args.sequence},
                          overwrite=args.overwrite)
     return lines, seconds, constraints
 
@@ -188,7 +216,10 @@ def _run(args, take_report) -> int:
     seeds = [args.seed + i * args.variants for i in range(len(lines))]
     kwargs = dict(seconds=seconds, num_inference_steps=args.steps, guidance_scale=args.guidance, seed=seeds,
                   num_variants=args.variants, rank=args.best is not None, constraints=constraints or None)
-    if cond == "action":
+    if args.sequence is not None:  # one motion, segment k continuing segment k-1 (seed + k)
+        out = pipe.sequence(list(zip(prompts, seconds)), seed=args.seed, overlap_s=SEQUENCE_OVERLAP_S,
+                            num_inference_steps=args.steps, guidance_scale=args.guidance)
+    elif cond == "action":
         actions = [args.action] * len(prompts) if args.action else prompts
         out = pipe(prompts, actions=actions, **kwargs)
     elif args.unconditional:
@@ -233,6 +264,8 @@ def register(groups) -> None:
     p.add_argument("--path", type=Path, default=None,
                    help='a root path on the ground: {"fps": 20, "points": [[frame, x, z], ...]} (docs/control.md)')
     p.add_argument("--loop", action="store_true", help="make the last frame continue into the first")
+    p.add_argument("--sequence", type=Path, default=None,
+                   help='one motion from segments: [{"prompt": "...", "seconds": 3.0}, ...] (docs/control.md)')
     p.add_argument("--model", type=Path, default=None, help="a model folder (default: the bundled model)")
     p.add_argument("--unconditional", action="store_true", help="ignore text: sample the unconditional model")
     p.add_argument("--action", default=None, help="an action label, for action-conditioned models")

@@ -335,6 +335,38 @@ class MLDPipeline:
         timings["total_s"] = time.perf_counter() - t_start
         return out
 
+    def sequence(self, segments: Sequence[tuple[str, float]], *, seed: int = 0, overlap_s: float = 0.5,
+                 **kwargs) -> MLDOutput:
+        """One motion from ``[(prompt, seconds), ...]``: each segment continues the previous one (its first
+        ``overlap_s`` seconds are constrained to the previous one's last, and the features cross-fade there), so
+        position and facing carry over. Segment k uses seed ``seed + k``. Returns one row; ``timings["segments"]``
+        holds each segment's first frame."""
+        from mld_core.constraints import Constraints, Continuation
+
+        t_start = time.perf_counter()
+        segments = [(str(p), float(s)) for p, s in segments]
+        if not segments:
+            raise InputError("a sequence needs at least one (prompt, seconds) segment")
+        overlap = int(round(overlap_s * self.config.fps))
+        first = self(segments[0][0], segments[0][1], seed=seed, **kwargs)
+        features = first.features[0, : int(first.lengths[0])]  # (T, F)
+        starts, residuals = [0], []
+        for k, (prompt, seconds) in enumerate(segments[1:], start=1):
+            tail = features_to_joints(features[-overlap:])  # the last frames, in their own frame
+            out = self(prompt, seconds + overlap / self.config.fps, seed=seed + k,
+                       constraints=Constraints([Continuation(tail)]), **kwargs)
+            residuals += out.residuals[0]
+            starts.append(len(features) - overlap)
+            new = out.features[0, : int(out.lengths[0])]
+            w = np.linspace(0.0, 1.0, overlap)[:, None]  # cross-fade the overlap: both are nearly the same frames
+            seam = (1 - w) * features[-overlap:] + w * new[:overlap]
+            features = np.concatenate([features[:-overlap], seam, new[overlap:]])  # (T, F)
+        joints = self.joints_from_features(features[None], [len(features)])
+        timings = {"segments": starts, "total_s": time.perf_counter() - t_start}
+        return MLDOutput(features[None].astype(np.float32), joints, np.array([len(features)]),
+                         [" | ".join(p for p, _ in segments)], [seed], self.config.fps, self.model_id, timings,
+                         residuals=[residuals])
+
     @torch.inference_mode()
     def sample_prior(self, seconds: float = 4.0, num: int = 1, seed: int = 0) -> MLDOutput:
         """Unconditional generation by decoding z ~ N(0, I) from the VAE prior (no denoiser)."""

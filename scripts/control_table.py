@@ -7,6 +7,9 @@
 - root paths: straight, curved and S-shaped, at a walking (1.2 m/s) and a running (3 m/s) speed, 4 s: mean root
   error over the path, and the foot skating ratio (mld_core.eval.quality) against free samples of the prompt;
 - loops: the largest joint gap between the last and the first frame, and the velocity jump across the seam;
+- sequences: walk 3 s -> wave the right hand 2 s -> bow 2 s (and run -> walk-back): each segment's content check
+  (mld_core.eval.physical) against free samples of its prompt, and the largest joint jerk at each seam against the
+  real test clips' 95th percentile of the same measure;
 - time per constrained 4 s take against the free one.
 """
 
@@ -23,6 +26,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from mld_core.constraints import Constraints, Loop, PoseKeys, RootPath  # noqa: E402
+from mld_core.eval import physical  # noqa: E402
 from mld_core.eval.quality import foot_skating_ratio  # noqa: E402
 from mld_core.motion.skeleton import JOINT_NAMES  # noqa: E402
 
@@ -100,6 +104,43 @@ def loops(pipe, seeds: int) -> list[dict]:
     return rows
 
 
+SEQUENCES = [
+    [("a person walks forward", 3.0, "walk"), ("a person waves the right hand", 2.0, "wave-right-hand"),
+     ("a person bows", 2.0, "bow")],
+    [("a person runs forward", 3.0, "run"), ("a person walks backwards", 3.0, "walk-back")],
+]
+
+
+def max_jerk(joints: np.ndarray) -> np.ndarray:
+    """(T-3,) the largest joint jerk (m/s^3) of each frame window."""
+    return np.linalg.norm(np.diff(joints, 3, axis=0), axis=-1).max(-1) * 20.0 ** 3
+
+
+def real_jerk_p95(data: Path, clips: int = 200) -> float:
+    ids = [line.strip() for line in (data / "test.txt").read_text().splitlines() if line.strip()][:clips]
+    return float(np.percentile(np.concatenate([max_jerk(np.load(data / "new_joints" / f"{i}.npy")) for i in ids]), 95))
+
+
+def sequences(pipe, seeds: int, data: Path) -> list[dict]:
+    p95 = real_jerk_p95(data)
+    rows = []
+    for segments in SEQUENCES:
+        passed, free_passed, seams = [], [], []
+        for seed in range(seeds):
+            out = pipe.sequence([(p, s) for p, s, _ in segments], seed=seed)
+            starts = out.timings["segments"] + [int(out.lengths[0])]
+            jerk = max_jerk(out.joints[0])
+            for k, (prompt, seconds, label) in enumerate(segments):
+                passed.append(physical.passes(out.joints[0, starts[k]:starts[k + 1]], label))
+                free = pipe([prompt], seconds=seconds, seed=seed)
+                free_passed.append(physical.passes(free.joints[0, : int(free.lengths[0])], label))
+                if k:
+                    seams.append(float(jerk[max(0, starts[k] - 3): starts[k] + 2].max()))
+        rows.append({"sequence": " -> ".join(label for _, _, label in segments), "pass": np.mean(passed),
+                     "free_pass": np.mean(free_passed), "seam_jerk": max(seams), "real_p95": p95})
+    return rows
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, required=True)
@@ -123,6 +164,9 @@ def main(argv=None) -> int:
     print("| prompt | loop gap (cm) | seam velocity jump / take's own p95 |")
     for r in loops(pipe, args.seeds):
         print(f"| {r['prompt']} | {r['gap_cm']:.2f} | {r['seam_jump_vs_p95']:.2f} |")
+    print("| sequence | segments passing their check | free samples | largest seam jerk | real p95 |")
+    for r in sequences(pipe, args.seeds, args.data):
+        print(f"| {r['sequence']} | {r['pass']:.2f} | {r['free_pass']:.2f} | {r['seam_jerk']:.0f} | {r['real_p95']:.0f} |")
     t0 = time.perf_counter()
     pipe(["a person walks forward"], seconds=4, seed=0)
     free_s = time.perf_counter() - t0

@@ -114,3 +114,31 @@ def test_generate_refuses_bad_paths(model, tmp_path, capsys):
     (tmp_path / "p.json").write_text(json.dumps({"points": [[0, 0, 0], [5, 1, 1]]}))
     refused(["generate", "a walk", "--model", model, "--path", tmp_path / "p.json", "--out", tmp_path / "p.json"],
             tmp_path, capsys, "same file")
+
+
+def test_a_sequence_is_one_continuous_motion(pipe):
+    out = pipe.sequence([("a person walks", 2.0), ("a person waves", 2.0), ("a person bows", 2.0)], seed=3,
+                        num_inference_steps=2)
+    assert out.joints.shape == (1, 120, 22, 3) and out.lengths.tolist() == [120]
+    assert out.timings["segments"] == [0, 30, 70]  # a later segment starts with the previous one's last 0.5 s
+    assert len(out.residuals[0]) == 2 and all(kind == "Continuation" for kind, _, _ in out.residuals[0])
+    step = np.linalg.norm(np.diff(out.joints[0], axis=0), axis=-1).max(-1)  # (T-1,) largest joint step per frame
+    for start in (30, 70):  # no jump across a cross-faded seam
+        assert step[start - 2:start + 12].max() < 3 * np.median(step) + 0.05
+    single = pipe.sequence([("a person walks", 2.0)], seed=3, num_inference_steps=2)
+    np.testing.assert_array_equal(single.joints[0], pipe("a person walks", 2.0, seed=3, num_inference_steps=2).joints[0])
+
+
+def test_generate_sequence_file(model, tmp_path, capsys):
+    (tmp_path / "s.json").write_text(json.dumps([{"prompt": "a walk", "seconds": 2}, {"prompt": "a wave", "seconds": 2}]))
+    assert main(["generate", "--sequence", str(tmp_path / "s.json"), "--model", str(model), "--steps", "2",
+                 "--out", str(tmp_path / "s.npz")]) == 0
+    assert np.load(tmp_path / "s.npz")["joints"].shape[:2] == (1, 80)
+    (tmp_path / "long.json").write_text(json.dumps([{"prompt": "a walk", "seconds": 2}, {"prompt": "a run", "seconds": 9.6}]))
+    refused(["generate", "--sequence", tmp_path / "long.json", "--model", model, "--out", tmp_path / "x.npz"], tmp_path,
+            capsys, "overlap")
+    refused(["generate", "--sequence", tmp_path / "s.json", "--variants", "2", "--model", model, "--out",
+             tmp_path / "x.npz"], tmp_path, capsys, "drop --variants")
+    (tmp_path / "bad.json").write_text(json.dumps([{"prompt": "!!!", "seconds": 2}]))
+    refused(["generate", "--sequence", tmp_path / "bad.json", "--model", model, "--out", tmp_path / "x.npz"], tmp_path,
+            capsys, "segment 1: the prompt")
