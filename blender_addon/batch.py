@@ -80,6 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
     src = parser.add_mutually_exclusive_group(required=True)
     src.add_argument("--prompts", metavar="FILE", help="prompt file: one take per line, '<frames> <text>' allowed")
     src.add_argument("--prompt", metavar="TEXT", action="append", help="a prompt (repeat for several takes)")
+    src.add_argument("--jobs", metavar="FILE", help="JSON job file: prompts with keys / path / loop, or sequences "
+                     "(docs/control.md)")
     parser.add_argument("--out", required=True, metavar="OUT.blend", help="the .blend to write")
     parser.add_argument("--armature", metavar="NAME", help="armature object to key (default: the canonical one)")
     parser.add_argument("--seconds", type=float, default=4.0, help="length of lines without a frame count (4)")
@@ -285,7 +287,8 @@ def check_outputs(args, paths: dict) -> None:
     without --overwrite (checked again when the outputs are put in place)."""
     if not str(paths["blend"]).endswith(".blend"):
         raise BatchError(f"--out must name a .blend file, got {paths['blend']}")
-    sources = {"--prompts": args.prompts, "--rig": args.rig, "--bvh-rig": args.bvh_rig, "--bone-map": args.bone_map}
+    sources = {"--prompts": args.prompts, "--jobs": args.jobs, "--rig": args.rig, "--bvh-rig": args.bvh_rig,
+               "--bone-map": args.bone_map}
     inputs.check_outputs({OPTION[k]: p for k, p in paths.items()},
                          {k: Path(v) for k, v in sources.items() if v}, overwrite=args.overwrite)
 
@@ -389,16 +392,19 @@ def checked_inputs(args, addon) -> _Inputs:
     """1. Inputs: prompts, numbers, the model folder, every output path, dependencies, keying options."""
     batchfile = importlib.import_module(f"{addon.__name__}.worker.batchfile")
     env = importlib.import_module(f"{addon.__name__}.env")
-    if args.prompts:
-        lines = batchfile.read_prompt_file(args.prompts)
-    else:
-        lines = batchfile.parse_prompt_lines("\n".join(p.replace("\n", " ") for p in args.prompt), source="--prompt")
     model_dir = args.model or env.model_dir_override()
     if model_dir and not Path(model_dir).is_dir():
         raise BatchError(f"model folder not found: {model_dir}")
+    extras = None
+    if args.jobs:
+        lines, extras = batchfile.read_job_file(args.jobs, model_dir)
+    elif args.prompts:
+        lines = batchfile.read_prompt_file(args.prompts)
+    else:
+        lines = batchfile.parse_prompt_lines("\n".join(p.replace("\n", " ") for p in args.prompt), source="--prompt")
     requests = batchfile.requests_from_lines(
-        lines, default_seconds=args.seconds, seed=args.seed, steps=args.steps, guidance=args.guidance, variants=1,
-        model_dir=model_dir, device=args.device, threads=args.threads,
+        lines, default_seconds=args.seconds, seed=args.seed, extras=extras, steps=args.steps, guidance=args.guidance,
+        variants=1, model_dir=model_dir, device=args.device, threads=args.threads,
     )
     inputs.check_fps(args.fps, "--fps")
     inputs.number_in_range(args.tolerance, "--tolerance", 0, 180)
@@ -457,7 +463,13 @@ def key_every_line(args, addon, inp: _Inputs, pipe, scene, obj) -> tuple[list, l
         take.name = report.actions[0]
         if take.coverage is not None and take.coverage.verdict == "unknown":
             print(f"warning: line {line.line}: {take.coverage.warning()}", file=sys.stderr)
+        for kind, metres, met in take.residuals or []:
+            if not met:
+                print(f"warning: job {line.line}: the {kind} constraint is off by {metres * 100:.1f} cm (best effort)",
+                      file=sys.stderr)
         record = take.summary()
+        if "job" in request.extra:
+            record["job"] = request.extra["job"]
         record.update(line=line.line, scene_frames=report.frames, scene_fps=report.fps,
                       time_s=round(time.perf_counter() - t0, 4), key_s=round(report.key_seconds, 4), keys=report.keys,
                       retargeted=report.retargeted, reduction_ratio=round(report.reduction_ratio, 4))

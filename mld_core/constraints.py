@@ -194,59 +194,80 @@ def _fps(data: dict, where: str) -> float:
     return fps
 
 
-def read_keys(path: Path) -> PoseKeys:
+def keys_from_data(data, where: str) -> PoseKeys:
     """``{"fps": 20, "keys": [{"frame": 40, "joints": {"pelvis": [x, y, z], ...}}, ...]}``."""
-    data = _load_json(path, "--keys")
     if not isinstance(data, dict) or not isinstance(data.get("keys"), list) or not data["keys"]:
-        raise InputError(f"--keys {path}: expected {{\"fps\": 20, \"keys\": [{{\"frame\": F, \"joints\": {{...}}}}]}}")
-    fps = _fps(data, f"--keys {path}")
+        raise InputError(f"{where}: expected {{\"fps\": 20, \"keys\": [{{\"frame\": F, \"joints\": {{...}}}}]}}")
+    fps = _fps(data, where)
     targets: dict[int, dict] = {}
     for n, key in enumerate(data["keys"], start=1):
-        where = f"--keys {path}, key {n}"
+        at = f"{where}, key {n}"
         if not isinstance(key, dict) or not isinstance(key.get("joints"), dict) or not key["joints"]:
-            raise InputError(f"{where}: expected {{\"frame\": F, \"joints\": {{\"pelvis\": [x, y, z], ...}}}}")
-        frame = _model_frame(key.get("frame"), fps, where)
+            raise InputError(f"{at}: expected {{\"frame\": F, \"joints\": {{\"pelvis\": [x, y, z], ...}}}}")
+        frame = _model_frame(key.get("frame"), fps, at)
         for joint, point in key["joints"].items():
             if joint not in JOINT_INDEX:
-                raise InputError(f"{where}: unknown joint {joint!r}; joints: {', '.join(JOINT_NAMES)}")
+                raise InputError(f"{at}: unknown joint {joint!r}; joints: {', '.join(JOINT_NAMES)}")
             if not isinstance(point, list) or len(point) != 3:
-                raise InputError(f"{where}: {joint} must be [x, y, z] in metres")
-            targets.setdefault(frame, {})[joint] = [finite_number(v, f"{where}: {joint}") for v in point]
+                raise InputError(f"{at}: {joint} must be [x, y, z] in metres")
+            targets.setdefault(frame, {})[joint] = [finite_number(v, f"{at}: {joint}") for v in point]
     return PoseKeys(targets)
 
 
-def read_sequence(path: Path) -> list[tuple[str, float]]:
+def path_from_data(data, where: str) -> RootPath:
+    """``{"fps": 20, "points": [[frame, x, z], ...]}`` (at least two points, frames increasing)."""
+    points = data.get("points") if isinstance(data, dict) else None
+    if not isinstance(points, list) or len(points) < 2:
+        raise InputError(f"{where}: expected {{\"fps\": 20, \"points\": [[frame, x, z], ...]}} with 2+ points")
+    fps = _fps(data, where)
+    frames, xz = [], []
+    for n, p in enumerate(points, start=1):
+        at = f"{where}, point {n}"
+        if not isinstance(p, list) or len(p) != 3:
+            raise InputError(f"{at}: expected [frame, x, z]")
+        frames.append(_model_frame(p[0], fps, at))
+        xz.append([finite_number(p[1], f"{at}: x"), finite_number(p[2], f"{at}: z")])
+    if any(b <= a for a, b in zip(frames, frames[1:])):
+        raise InputError(f"{where}: frames must increase")
+    return RootPath(frames, np.asarray(xz, np.float64))
+
+
+def sequence_from_data(data, where: str) -> list[tuple[str, float]]:
     """``[{"prompt": "a person walks forward", "seconds": 3.0}, ...]`` (at least one segment)."""
-    data = _load_json(path, "--sequence")
     if not isinstance(data, list) or not data:
-        raise InputError(f"--sequence {path}: expected [{{\"prompt\": \"...\", \"seconds\": 3.0}}, ...]")
+        raise InputError(f"{where}: expected [{{\"prompt\": \"...\", \"seconds\": 3.0}}, ...]")
     segments = []
     for n, seg in enumerate(data, start=1):
-        where = f"--sequence {path}, segment {n}"
+        at = f"{where}, segment {n}"
         if not isinstance(seg, dict) or not isinstance(seg.get("prompt"), str):
-            raise InputError(f"{where}: expected {{\"prompt\": \"...\", \"seconds\": 3.0}}")
+            raise InputError(f"{at}: expected {{\"prompt\": \"...\", \"seconds\": 3.0}}")
         try:
             prompt = check_prompt(seg["prompt"])
         except InputError as exc:
-            raise InputError(f"{where}: {exc}") from None
-        segments.append((prompt, finite_number(seg.get("seconds", 4.0), f"{where}: seconds")))
+            raise InputError(f"{at}: {exc}") from None
+        segments.append((prompt, finite_number(seg.get("seconds", 4.0), f"{at}: seconds")))
     return segments
 
 
+def read_keys(path: Path) -> PoseKeys:
+    return keys_from_data(_load_json(path, "--keys"), f"--keys {path}")
+
+
 def read_path(path: Path) -> RootPath:
-    """``{"fps": 20, "points": [[frame, x, z], ...]}`` (at least two points, frames increasing)."""
-    data = _load_json(path, "--path")
-    points = data.get("points") if isinstance(data, dict) else None
-    if not isinstance(points, list) or len(points) < 2:
-        raise InputError(f"--path {path}: expected {{\"fps\": 20, \"points\": [[frame, x, z], ...]}} with 2+ points")
-    fps = _fps(data, f"--path {path}")
-    frames, xz = [], []
-    for n, p in enumerate(points, start=1):
-        where = f"--path {path}, point {n}"
-        if not isinstance(p, list) or len(p) != 3:
-            raise InputError(f"{where}: expected [frame, x, z]")
-        frames.append(_model_frame(p[0], fps, where))
-        xz.append([finite_number(p[1], f"{where}: x"), finite_number(p[2], f"{where}: z")])
-    if any(b <= a for a, b in zip(frames, frames[1:])):
-        raise InputError(f"--path {path}: frames must increase")
-    return RootPath(frames, np.asarray(xz, np.float64))
+    return path_from_data(_load_json(path, "--path"), f"--path {path}")
+
+
+def read_sequence(path: Path) -> list[tuple[str, float]]:
+    return sequence_from_data(_load_json(path, "--sequence"), f"--sequence {path}")
+
+
+def constraints_from_job(job: dict, where: str) -> Constraints:
+    """A batch job's ``keys``, ``path`` and ``loop`` (the formats of --keys, --path and --loop) as Constraints."""
+    items = []
+    if job.get("keys") is not None:
+        items.append(keys_from_data(job["keys"], f"{where}: keys"))
+    if job.get("path") is not None:
+        items.append(path_from_data(job["path"], f"{where}: path"))
+    if job.get("loop"):
+        items.append(Loop())
+    return Constraints(items)

@@ -109,3 +109,25 @@ def test_linked_armature_is_refused_and_the_panel_range_comes_from_the_model(tmp
     assert r["batch_cube"] == 2 and not (tmp_path / "c.blend").exists()
     assert "has no armature object" in r["batch_cube_err"] and "Traceback" not in r["batch_cube_err"]
 
+
+
+def test_batch_job_files_are_checked_before_any_work(work, capsys):
+    import json
+
+    w = work
+    bad = {
+        "not_json.json": ("{", "not valid JSON"),
+        "no_jobs.json": (json.dumps({"jobs": []}), "expected"),
+        "both.json": (json.dumps({"jobs": [{"prompt": "a walk", "sequence": [{"prompt": "a", "seconds": 2}]}]}),
+                      "not both"),
+        "unknown.json": (json.dumps({"jobs": [{"prompt": "a walk", "speed": 3}]}), "only"),
+        "joint.json": (json.dumps({"jobs": [{"prompt": "a walk", "keys": {"keys": [{"frame": 1, "joints": {"x": [0, 0, 0]}}]}}]}),
+                       "unknown joint"),
+        "seq_keys.json": (json.dumps({"jobs": [{"sequence": [{"prompt": "a walk", "seconds": 2}], "loop": True}]}),
+                          "takes no keys"),
+        "long.json": (json.dumps({"jobs": [{"sequence": [{"prompt": "a walk", "seconds": 2},
+                                                         {"prompt": "a run", "seconds": 9.6}]}]}), "segment 2"),
+    }
+    for name, (text, words) in bad.items():
+        (w / name).write_text(text)
+        batch_refuses(["--jobs", w / name, "--out", w / "x.blend"], w, capsys, words)

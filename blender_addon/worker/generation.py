@@ -40,6 +40,7 @@ class Take:
     contacts: np.ndarray | None = None  # (T, 4) the features' foot-contact channels (> 0.5 = contact)
     coverage: object = None  # mld_core.coverage.Coverage of the prompt (None: not checked)
     badges: object = None  # mld_core.eval.quality.Badges (None: not scored)
+    residuals: list | None = None  # [(constraint kind, metres, met)] for a directed take
 
     @property
     def frames(self) -> int:
@@ -76,6 +77,9 @@ class Take:
         from mld_core.take_report import take_record
 
         prov.update(take_record(self.coverage, self.badges))
+        if self.residuals:
+            prov["constraints"] = [{"kind": k, "residual_cm": round(r * 100, 2), "met": bool(m)}
+                                   for k, r, m in self.residuals]
         return prov
 
 
@@ -106,16 +110,13 @@ def generate(pipe, request: GenerateRequest, callback=None, check_cancel=None) -
     start = time.perf_counter()
     guidance = request.guidance
     coverage = pipe.coverage([request.prompt])[0] if hasattr(pipe, "coverage") else None
-    out = pipe(
-        [request.prompt],
-        seconds=request.seconds,
-        num_inference_steps=request.steps,
-        guidance_scale=guidance,
-        seed=request.seed,
-        num_variants=request.variants,
-        callback=callback,
-        rank=True,
-    )
+    constraints, sequence = request.extra.get("constraints"), request.extra.get("sequence")
+    if sequence:  # one motion from prompt segments (a batch job)
+        out = pipe.sequence(sequence, seed=request.seed, num_inference_steps=request.steps, guidance_scale=guidance)
+    else:
+        out = pipe([request.prompt], seconds=request.seconds, num_inference_steps=request.steps,
+                   guidance_scale=guidance, seed=request.seed, num_variants=request.variants, callback=callback,
+                   rank=True, constraints=constraints or None)
     generated = time.perf_counter() - start
     if check_cancel is not None:
         check_cancel()
@@ -149,6 +150,7 @@ def generate(pipe, request: GenerateRequest, callback=None, check_cancel=None) -
             contacts=np.asarray(out.features[row, :n, -4:], np.float64),
             coverage=coverage,
             badges=out.badges[row] if getattr(out, "badges", None) is not None else None,
+            residuals=out.residuals[row] if getattr(out, "residuals", None) else None,
         )
         take.name = action_name(request.prompt, request.seed, take.variant, request.variants)
         takes.append(take)
