@@ -170,6 +170,21 @@ def planted_foot_speed(joints: torch.Tensor, contacts: torch.Tensor) -> torch.Te
     return ((step ** 2).sum(-1) * planted).sum() / planted.sum().clamp(min=1.0)
 
 
+def path_along(points: np.ndarray, frames: int, units_per_metre: float = 1.0) -> RootPath:
+    """A root path following ``points`` (N, 3) of a curve in Blender's axes (Z up, the character facing -Y) from its
+    first point, spread evenly by arc length over ``frames`` model frames: the take starts where it stands and the
+    root traces the curve's shape (model x = Blender x, model z = -Blender y)."""
+    pts = np.asarray(points, np.float64)[:, :2] / units_per_metre
+    rel = pts - pts[0]
+    xz = np.stack([rel[:, 0], -rel[:, 1]], -1)  # (N, 2)
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xz, axis=0), axis=-1))])
+    if len(xz) < 2 or arc[-1] <= 0:
+        raise InputError("the curve has no length to follow")
+    at = np.linspace(0.0, arc[-1], frames)
+    dense = np.stack([np.interp(at, arc, xz[:, i]) for i in range(2)], -1)
+    return RootPath(list(range(frames)), dense)
+
+
 # -- files ----------------------------------------------------------------------------------------------------------
 def _load_json(path: Path, what: str):
     try:

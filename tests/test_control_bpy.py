@@ -33,3 +33,47 @@ def test_batch_runs_a_job_file(tmp_path):
     assert [c["kind"] for c in takes[1]["constraints"]] == ["RootPath", "Loop"]
     assert [c["kind"] for c in takes[2]["constraints"]] == ["Continuation"]
     assert takes[2]["frames"] == 80  # 2 s + 2 s, one motion
+
+
+PANEL = r"""
+import sys
+sys.path.insert(0, {repo!r})
+import bpy, addon_utils
+import numpy as np
+bpy.ops.wm.read_factory_settings(use_empty=True)
+addon_utils.enable("blender_addon", default_set=True)
+from blender_addon.ui import operators
+ctx = bpy.context
+s = ctx.scene.mld_motion
+bpy.ops.mld.create_armature()
+ctx.scene.render.fps = 20
+bpy.ops.curve.primitive_bezier_curve_add(location=(0, -1.0, 0))
+curve = ctx.object
+curve.scale = (2.0, 2.0, 2.0)  # the handles span x -2..2 at y = -1: a 4 m arc across the character's front
+s.prompt, s.seconds, s.seed, s.steps = "a person walks", 2.0, 1, 2
+out = {{"free": operators.direction_of(s, 40).items}}
+s.loop, s.follow_curve = True, curve
+c = operators.direction_of(s, 40)
+out["kinds"] = [type(i).__name__ for i in c.items]
+path = c.items[1]
+out["path_start_end"] = [path.points[0].tolist(), path.points[-1].tolist()]
+out["path_length"] = float(np.linalg.norm(np.diff(path.points, axis=0), axis=-1).sum())
+request = operators.request_from_settings(s, None)
+out["request_kinds"] = [type(i).__name__ for i in request.extra["constraints"].items]
+ctx.view_layer.objects.active = s.target
+out["generate"] = sorted(bpy.ops.mld.generate())
+emit(out)
+"""
+
+
+def test_panel_loop_and_follow_curve(tmp_path):
+    from bpy_util import run_bpy_script
+
+    model = tiny_model(tmp_path / "tiny")
+    r = run_bpy_script(PANEL.format(repo=str(REPO)), tmp_path, timeout=180, MLD_MODEL_DIR=model)
+    assert r["free"] == []
+    assert r["kinds"] == ["Loop", "RootPath"] and r["request_kinds"] == ["Loop", "RootPath"]
+    start, end = r["path_start_end"]
+    assert start == [0.0, 0.0] and end[0] == pytest.approx(4.0, abs=0.05) and abs(end[1]) < 0.05
+    assert 4.0 < r["path_length"] < 6.0  # the arc, measured along the evaluated curve
+    assert r["generate"] == ["FINISHED"]

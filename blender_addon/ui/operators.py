@@ -30,8 +30,9 @@ def resolve_target(context):
 
 
 def request_from_settings(settings, prefs):
-    """A validated request from the panel settings and the preferences (raises RequestError)."""
-    return validate_request(
+    """A validated request from the panel settings and the preferences (raises RequestError); Loop and Follow
+    Curve ride along as constraints."""
+    request = validate_request(
         settings.prompt,
         settings.seconds,
         settings.seed,
@@ -42,6 +43,21 @@ def request_from_settings(settings, prefs):
         device=prefs.device if prefs is not None else "cpu",
         threads=prefs.threads if prefs is not None else 0,
     )
+    constraints = direction_of(settings, request.frames)
+    return request.with_(extra={"constraints": constraints}) if constraints else request
+
+
+def direction_of(settings, frames: int):
+    """The panel's Loop and Follow Curve as a mld_core.constraints.Constraints (empty when neither is set)."""
+    from mld_core.constraints import Constraints, Loop, path_along
+
+    from ..scene.curves import curve_points
+
+    items = [Loop()] if getattr(settings, "loop", False) else []
+    curve = getattr(settings, "follow_curve", None)
+    if curve is not None:
+        items.append(path_along(curve_points(curve), frames))
+    return Constraints(items)
 
 
 def do_generate(obj, scene, request, *, exact=True, set_frame_range=True, wait=False):

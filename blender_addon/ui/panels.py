@@ -46,6 +46,9 @@ class MLD_PT_generate(bpy.types.Panel):
         row = col.row(align=True)
         row.prop(settings, "steps")
         row.prop(settings, "guidance")
+        row = layout.row(align=True)
+        row.prop(settings, "loop", toggle=True)
+        row.prop(settings, "follow_curve", text="", icon="CURVE_DATA")
 
         target = resolve_target(context)
         layout.prop(settings, "target", icon="ARMATURE_DATA")

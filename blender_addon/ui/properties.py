@@ -17,6 +17,10 @@ def _is_armature(self, obj):
     return obj.type == "ARMATURE"
 
 
+def _is_curve(self, obj):
+    return obj.type == "CURVE"
+
+
 class MLD_SceneSettings(bpy.types.PropertyGroup):
     prompt: StringProperty(
         name="Prompt",
@@ -52,6 +56,14 @@ class MLD_SceneSettings(bpy.types.PropertyGroup):
         default=1,
         min=1,
         max=MAX_VARIANTS,
+    )
+    loop: BoolProperty(name="Loop", description="The take's last frame continues into its first (a cycle)",
+                       default=False)
+    follow_curve: PointerProperty(
+        name="Follow Curve",
+        description="The root follows this curve's shape over the take, from where the armature stands (empty: free)",
+        type=bpy.types.Object,
+        poll=_is_curve,
     )
     target: PointerProperty(
         name="Armature",
