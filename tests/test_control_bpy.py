@@ -77,3 +77,47 @@ def test_panel_loop_and_follow_curve(tmp_path):
     assert start == [0.0, 0.0] and end[0] == pytest.approx(4.0, abs=0.05) and abs(end[1]) < 0.05
     assert 4.0 < r["path_length"] < 6.0  # the arc, measured along the evaluated curve
     assert r["generate"] == ["FINISHED"]
+
+
+REVIEW = r"""
+import sys
+sys.path.insert(0, {repo!r})
+import bpy, addon_utils
+bpy.ops.wm.read_factory_settings(use_empty=True)
+addon_utils.enable("blender_addon", default_set=True)
+ctx = bpy.context
+s = ctx.scene.mld_motion
+bpy.ops.mld.create_armature()
+obj = s.target
+mine = bpy.data.actions.new("hand_made")
+obj.animation_data_create()
+obj.animation_data.action = mine
+s.prompt, s.seconds, s.steps, s.preview = "a person walks", 2.0, 2, True
+out = {{"poll_before": bpy.ops.mld.reject_take.poll()}}
+bpy.ops.mld.generate()
+made = s.last_actions.split(", ")
+out["playing"] = obj.animation_data.action.name
+out["poll_after"] = bpy.ops.mld.reject_take.poll()
+bpy.ops.mld.reject_take()
+out["after_reject"] = obj.animation_data.action.name
+out["made_left"] = [n for n in made if n in bpy.data.actions]
+bpy.ops.mld.generate()
+kept = s.last_actions.split(", ")
+bpy.ops.mld.accept_take()
+out["after_accept"] = obj.animation_data.action.name
+out["kept"] = [n for n in kept if n in bpy.data.actions and bpy.data.actions[n].use_fake_user]
+out["made"], out["kept_names"] = made, kept
+out["hand_made_kept"] = "hand_made" in bpy.data.actions
+emit(out)
+"""
+
+
+def test_preview_then_reject_or_accept(tmp_path):
+    from bpy_util import run_bpy_script
+
+    model = tiny_model(tmp_path / "tiny")
+    r = run_bpy_script(REVIEW.format(repo=str(REPO)), tmp_path, timeout=180, MLD_MODEL_DIR=model)
+    assert r["poll_before"] is False and r["poll_after"] is True
+    assert r["playing"] == r["made"][0]
+    assert r["after_reject"] == "hand_made" and r["made_left"] == []  # what was there is back; the take is gone
+    assert r["after_accept"] == r["kept_names"][0] and r["kept"] == r["kept_names"] and r["hand_made_kept"]

@@ -65,7 +65,7 @@ def do_generate(obj, scene, request, *, exact=True, set_frame_range=True, wait=F
     job and returns ("INFO", message) at once."""
     # the keying options are read now, so changing the panel while the job runs does not change this take
     target = runtime.Target(obj.name, getattr(obj, "session_uid", None), scene.name, exact, set_frame_range,
-                            options=settings_of(scene))
+                            options=settings_of(scene), preview=bool(getattr(scene.mld_motion, "preview", False)))
     if wait:
         job = runtime.runner().run_now(request)
         return runtime.finish_job(job, target)
@@ -258,8 +258,51 @@ class MLD_OT_report(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class _ReviewTake:
+    """Accept / Reject: enabled while the target armature has takes made in preview."""
+
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        from ..scene import take_review
+
+        if not take_review.pending(resolve_target(context)):
+            cls.poll_message_set("No take in preview: turn Preview on and Generate")
+            return False
+        return True
+
+
+class MLD_OT_accept_take(_ReviewTake, bpy.types.Operator):
+    """Keep the takes in preview as ordinary takes"""
+
+    bl_idname = "mld.accept_take"
+    bl_label = "Accept"
+
+    def execute(self, context):
+        from ..scene import take_review
+
+        self.report({"INFO"}, take_review.accept(resolve_target(context)))
+        return {"FINISHED"}
+
+
+class MLD_OT_reject_take(_ReviewTake, bpy.types.Operator):
+    """Delete the takes in preview and give the armature back the Action it had"""
+
+    bl_idname = "mld.reject_take"
+    bl_label = "Reject"
+
+    def execute(self, context):
+        from ..scene import take_review
+
+        self.report({"INFO"}, take_review.reject(resolve_target(context)))
+        return {"FINISHED"}
+
+
 classes = (
     MLD_OT_generate,
+    MLD_OT_accept_take,
+    MLD_OT_reject_take,
     MLD_OT_cancel,
     MLD_OT_randomize_seed,
     MLD_OT_create_armature,

@@ -49,6 +49,10 @@ class MLD_PT_generate(bpy.types.Panel):
         row = layout.row(align=True)
         row.prop(settings, "loop", toggle=True)
         row.prop(settings, "follow_curve", text="", icon="CURVE_DATA")
+        row = layout.row(align=True)
+        row.prop(settings, "preview", toggle=True)
+        row.operator("mld.accept_take", icon="CHECKMARK")
+        row.operator("mld.reject_take", icon="X")
 
         target = resolve_target(context)
         layout.prop(settings, "target", icon="ARMATURE_DATA")

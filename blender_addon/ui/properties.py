@@ -57,6 +57,8 @@ class MLD_SceneSettings(bpy.types.PropertyGroup):
         min=1,
         max=MAX_VARIANTS,
     )
+    preview: BoolProperty(name="Preview", description="New takes play as a preview until you Accept or Reject them "
+                          "(Reject gives the armature back the Action it had)", default=False)
     loop: BoolProperty(name="Loop", description="The take's last frame continues into its first (a cycle)",
                        default=False)
     follow_curve: PointerProperty(

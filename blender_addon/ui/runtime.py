@@ -32,6 +32,7 @@ class Target:
     exact: bool
     set_frame_range: bool
     options: object = None  # apply.RetargetSettings as they were when Generate was pressed (None: read them at the end)
+    preview: bool = False  # the takes stay pending until Accept or Reject (scene/take_review.py)
 
 
 _targets: dict[int, Target] = {}
@@ -127,9 +128,14 @@ def finish_job(job, target: Target | None) -> tuple[str, str]:
         error = f"The armature {target.object_name if target else ''!r} is gone; nothing was keyed"
         record_outcome(scene, error=error)
         return "ERROR", error
+    previous = obj.animation_data.action.name if obj.animation_data and obj.animation_data.action else ""
     try:
         report = apply_result(obj, job.result, scene, exact=target.exact, set_frame_range=target.set_frame_range,
                               options=target.options)
+        if target.preview:
+            from ..scene import take_review
+
+            take_review.mark_pending(obj, report.actions, previous)
     except Exception as exc:  # noqa: BLE001 - reach the user as a message, never a traceback
         import traceback
 
