@@ -185,6 +185,17 @@ def path_along(points: np.ndarray, frames: int, units_per_metre: float = 1.0) ->
     return RootPath(list(range(frames)), dense)
 
 
+def keys_from_blender(poses: dict[int, dict[str, Sequence[float]]], origin: Sequence[float]) -> PoseKeys:
+    """Pose keys from joint positions read off an armature in Blender's world (Z up, the character facing -Y),
+    ``poses[model_frame][joint] = (x, y, z)``, relative to the armature's ``origin`` (where the take starts)."""
+    ox, oy, oz = (float(v) for v in origin)
+    targets = {int(f): {j: [float(p[0]) - ox, float(p[2]) - oz, -(float(p[1]) - oy)] for j, p in keyed.items()}
+               for f, keyed in poses.items() if keyed}
+    if not targets:
+        raise InputError("the armature has no keys in the take's frame range to use")
+    return PoseKeys(targets)
+
+
 # -- files ----------------------------------------------------------------------------------------------------------
 def _load_json(path: Path, what: str):
     try:

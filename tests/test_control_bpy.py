@@ -121,3 +121,70 @@ def test_preview_then_reject_or_accept(tmp_path):
     assert r["playing"] == r["made"][0]
     assert r["after_reject"] == "hand_made" and r["made_left"] == []  # what was there is back; the take is gone
     assert r["after_accept"] == r["kept_names"][0] and r["kept"] == r["kept_names"] and r["hand_made_kept"]
+
+
+ARMATURE_KEYS = r"""
+import sys, math
+sys.path.insert(0, {repo!r})
+import bpy, addon_utils
+import numpy as np
+bpy.ops.wm.read_factory_settings(use_empty=True)
+addon_utils.enable("blender_addon", default_set=True)
+from blender_addon.ui import operators
+ctx = bpy.context
+scene = ctx.scene
+scene.render.fps = 20
+s = scene.mld_motion
+bpy.ops.mld.create_armature()
+obj = s.target
+obj.location = (1.0, 2.0, 0.0)
+pb = obj.pose.bones["left_shoulder"]
+pb.rotation_mode = "QUATERNION"
+pb.keyframe_insert("rotation_quaternion", frame=1)
+pb.rotation_quaternion = (math.cos(0.6), 0.0, math.sin(0.6), 0.0)
+pb.keyframe_insert("rotation_quaternion", frame=31)
+pb.keyframe_insert("rotation_quaternion", frame=200)  # beyond the take: not used
+scene.frame_set(31)
+wrist = list(obj.matrix_world @ obj.pose.bones["left_shoulder"].head)
+s.prompt, s.seconds, s.steps, s.use_armature_keys = "a person waves", 2.0, 2, True
+c = operators.direction_of(s, 40, obj)
+keys = c.items[0]
+out = {{"frames": sorted(keys.targets), "joints": sorted(keys.targets[30]),
+       "shoulder": keys.targets[30]["left_shoulder"], "expected": [wrist[0] - 1.0, wrist[2], -(wrist[1] - 2.0)],
+       "frame_restored": scene.frame_current}}
+s.keys_selected_only = True
+for pb in obj.pose.bones:
+    if hasattr(pb, "select"):
+        pb.select = False
+    else:
+        pb.bone.select = False
+try:
+    operators.direction_of(s, 40, obj)
+    out["none_selected"] = "no error"
+except ValueError as exc:
+    out["none_selected"] = str(exc)
+emit(out)
+"""
+
+
+def test_use_keys_on_the_armature(tmp_path):
+    from bpy_util import run_bpy_script
+
+    r = run_bpy_script(ARMATURE_KEYS.format(repo=str(REPO)), tmp_path, timeout=120)
+    assert r["frames"] == [0, 30]  # scene frames 1 and 31 (frame 200 is past the 2 s take)
+    assert r["joints"] == ["left_shoulder"]  # only the keyed bone's joint
+    assert r["shoulder"] == pytest.approx(r["expected"], abs=1e-5)  # relative to the armature, model axes
+    assert r["frame_restored"] == 31
+    assert "no keys in the take's frame range" in r["none_selected"]
+
+
+def test_typing_a_prompt_raises_nothing(tmp_path):
+    """The prompt's update callback (the coverage line) runs without an error on stderr."""
+    script = tmp_path / "type.py"
+    script.write_text(
+        f"import sys\nsys.path.insert(0, {str(REPO)!r})\nimport bpy, addon_utils\n"
+        "bpy.ops.wm.read_factory_settings(use_empty=True)\naddon_utils.enable('blender_addon', default_set=True)\n"
+        "bpy.context.scene.mld_motion.prompt = 'a person jumps'\nprint('typed')\n")
+    proc = run_python([script], user_dir=tmp_path / "user", timeout=120)
+    assert proc.returncode == 0 and "typed" in proc.stdout
+    assert "Traceback" not in proc.stderr and "Error" not in proc.stderr, proc.stderr[-2000:]

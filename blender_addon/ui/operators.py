@@ -29,9 +29,9 @@ def resolve_target(context):
     return obj if obj is not None and obj.type == "ARMATURE" else None
 
 
-def request_from_settings(settings, prefs):
-    """A validated request from the panel settings and the preferences (raises RequestError); Loop and Follow
-    Curve ride along as constraints."""
+def request_from_settings(settings, prefs, target=None):
+    """A validated request from the panel settings and the preferences (raises RequestError); the armature's keys
+    (of ``target``), Loop and Follow Curve ride along as constraints."""
     request = validate_request(
         settings.prompt,
         settings.seconds,
@@ -43,17 +43,27 @@ def request_from_settings(settings, prefs):
         device=prefs.device if prefs is not None else "cpu",
         threads=prefs.threads if prefs is not None else 0,
     )
-    constraints = direction_of(settings, request.frames)
+    constraints = direction_of(settings, request.frames, target)
     return request.with_(extra={"constraints": constraints}) if constraints else request
 
 
-def direction_of(settings, frames: int):
-    """The panel's Loop and Follow Curve as a mld_core.constraints.Constraints (empty when neither is set)."""
-    from mld_core.constraints import Constraints, Loop, path_along
+def direction_of(settings, frames: int, obj=None):
+    """The panel's Use Keys on the Armature (``obj``'s keys), Loop and Follow Curve as a
+    mld_core.constraints.Constraints (empty when none is set)."""
+    from mld_core.constraints import Constraints, Loop, keys_from_blender, path_along
 
     from ..scene.curves import curve_points
 
-    items = [Loop()] if getattr(settings, "loop", False) else []
+    items = []
+    if getattr(settings, "use_armature_keys", False) and obj is not None:
+        from ..scene.armature_keys import keyed_poses
+        from ..scene.key_takes import bone_map_of
+
+        poses = keyed_poses(obj, bpy.context.scene, bone_map_of(obj).joints, frames / 20.0,
+                            only_selected=settings.keys_selected_only)
+        items.append(keys_from_blender(poses, tuple(obj.matrix_world.translation)))
+    if getattr(settings, "loop", False):
+        items.append(Loop())
     curve = getattr(settings, "follow_curve", None)
     if curve is not None:
         items.append(path_along(curve_points(curve), frames))
@@ -119,7 +129,7 @@ class MLD_OT_generate(bpy.types.Operator):
         settings = context.scene.mld_motion
         obj = resolve_target(context)
         try:
-            request = request_from_settings(settings, get_prefs(context))
+            request = request_from_settings(settings, get_prefs(context), obj)
         except RequestError as exc:
             runtime.record_outcome(context.scene, error=str(exc))
             self.report({"ERROR"}, str(exc))

@@ -5,12 +5,16 @@ from __future__ import annotations
 import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-from . import quality_panel
 from mld_core.rig.keying import DEFAULT_TOLERANCE_DEG, ROTATION_CHOICES
 
+from . import quality_panel
 from ..worker.validation import MAX_STEPS, MAX_VARIANTS, SEED_MAX, model_limits
 
 _LIMITS = model_limits()  # the bundled model's lengths (config.json only); another model's are checked on Generate
+
+
+def _prompt_changed(self, context):
+    quality_panel.prompt_changed(self, context)
 
 
 def _is_armature(self, obj):
@@ -26,7 +30,7 @@ class MLD_SceneSettings(bpy.types.PropertyGroup):
         name="Prompt",
         description="What the character does, in plain English (e.g. 'a person walks forward and waves')",
         default="a person walks forward and waves with the right hand",
-        update=lambda self, context: quality_panel.prompt_changed(self, context),  # coverage as the user types
+        update=_prompt_changed,  # coverage as the user types
         options={"TEXTEDIT_UPDATE"},
     )
     seconds: FloatProperty(
@@ -59,6 +63,13 @@ class MLD_SceneSettings(bpy.types.PropertyGroup):
     )
     preview: BoolProperty(name="Preview", description="New takes play as a preview until you Accept or Reject them "
                           "(Reject gives the armature back the Action it had)", default=False)
+    use_armature_keys: BoolProperty(
+        name="Use Keys on the Armature",
+        description="Poses the armature is already keyed in, within the take's range, become poses the take must hit",
+        default=False,
+    )
+    keys_selected_only: BoolProperty(name="Selected Bones Only", description="Use only the selected bones' keys",
+                                     default=False)
     loop: BoolProperty(name="Loop", description="The take's last frame continues into its first (a cycle)",
                        default=False)
     follow_curve: PointerProperty(
