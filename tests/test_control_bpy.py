@@ -188,3 +188,41 @@ def test_typing_a_prompt_raises_nothing(tmp_path):
     proc = run_python([script], user_dir=tmp_path / "user", timeout=120)
     assert proc.returncode == 0 and "typed" in proc.stdout
     assert "Traceback" not in proc.stderr and "Error" not in proc.stderr, proc.stderr[-2000:]
+
+
+SEQUENCE = r"""
+import sys
+sys.path.insert(0, {repo!r})
+import bpy, addon_utils
+bpy.ops.wm.read_factory_settings(use_empty=True)
+addon_utils.enable("blender_addon", default_set=True)
+ctx = bpy.context
+ctx.scene.render.fps = 20
+s = ctx.scene.mld_motion
+bpy.ops.mld.create_armature()
+s.steps = 2
+s.prompt, s.seconds = "a person walks", 2.0
+bpy.ops.mld.sequence_edit(action="ADD")
+s.prompt, s.seconds = "a person bows", 3.0
+bpy.ops.mld.sequence_edit(action="ADD")
+bpy.ops.mld.sequence_edit(action="UP")  # the bow first
+out = {{"rows": [(r.prompt, r.seconds) for r in s.sequence]}}
+out["generate"] = sorted(bpy.ops.mld.generate())
+out["frames"], out["actions"] = s.last_frames, s.last_actions
+s.sequence[1].prompt = "!!!"
+try:
+    out["bad"] = sorted(bpy.ops.mld.generate())
+except RuntimeError as exc:  # an operator's ERROR report, as a script sees it
+    out["bad"] = str(exc)
+out["error"] = s.last_error
+emit(out)
+"""
+
+
+def test_panel_sequence_makes_one_take(tmp_path):
+    from bpy_util import run_bpy_script
+
+    r = run_bpy_script(SEQUENCE.format(repo=str(REPO)), tmp_path, timeout=180, MLD_MODEL_DIR=tiny_model(tmp_path / "t"))
+    assert r["rows"] == [["a person bows", 3.0], ["a person walks", 2.0]]
+    assert r["generate"] == ["FINISHED"] and r["frames"] == 100 and "," not in r["actions"]  # 3 s + 2 s, one Action
+    assert "Sequence segment 2" in r["bad"] and "Sequence segment 2" in r["error"]

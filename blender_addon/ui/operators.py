@@ -43,8 +43,29 @@ def request_from_settings(settings, prefs, target=None):
         device=prefs.device if prefs is not None else "cpu",
         threads=prefs.threads if prefs is not None else 0,
     )
+    rows = [(row.prompt, row.seconds) for row in getattr(settings, "sequence", ())]
+    if rows:  # one take from the sequence's segments (the first one's prompt and length name it)
+        return request.with_(prompt=rows[0][0], extra={"sequence": sequence_of(rows, request.model_dir)})
     constraints = direction_of(settings, request.frames, target)
     return request.with_(extra={"constraints": constraints}) if constraints else request
+
+
+def sequence_of(rows, model_dir) -> list[tuple[str, float]]:
+    """The panel's sequence rows, checked like generate --sequence (a later segment also makes 0.5 s of overlap)."""
+    from mld_core.inputs import check_prompt, check_seconds, model_limits
+
+    from ..worker.batchfile import SEQUENCE_OVERLAP_S
+
+    limits = model_limits(model_dir)
+    out = []
+    for n, (prompt, seconds) in enumerate(rows, start=1):
+        try:
+            text = check_prompt(prompt)
+            check_seconds(seconds + (SEQUENCE_OVERLAP_S if n > 1 else 0.0), limits, "Length")
+        except RequestError as exc:
+            raise RequestError(f"Sequence segment {n}: {exc}") from None
+        out.append((text, float(seconds)))
+    return out
 
 
 def direction_of(settings, frames: int, obj=None):

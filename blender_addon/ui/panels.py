@@ -5,7 +5,7 @@ from __future__ import annotations
 import bpy
 
 from .. import env
-from . import quality_panel
+from . import quality_panel, sequence_panel
 from . import runtime
 from .operators import resolve_target
 
@@ -49,6 +49,7 @@ class MLD_PT_generate(bpy.types.Panel):
         row = layout.row(align=True)
         row.prop(settings, "loop", toggle=True)
         row.prop(settings, "follow_curve", text="", icon="CURVE_DATA")
+        sequence_panel.draw(layout, settings)
         row = layout.row(align=True)
         row.prop(settings, "use_armature_keys")
         row.prop(settings, "keys_selected_only", text="Selected")
@@ -121,11 +122,13 @@ def register():
         bpy.utils.register_class(cls)
     retarget_panel.register()  # the Retarget sub-panel (after its parent), its operators and Object.mld_retarget
     quality_panel.register()  # the "What This Model Knows" sub-panel
+    sequence_panel.register()  # the prompt sequence's list and its buttons
 
 
 def unregister():
     from . import retarget_panel
 
+    sequence_panel.unregister()
     quality_panel.unregister()
     retarget_panel.unregister()
     for cls in reversed(classes):

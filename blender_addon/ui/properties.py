@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import bpy
-from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty,
+                       StringProperty)
 
 from mld_core.rig.keying import DEFAULT_TOLERANCE_DEG, ROTATION_CHOICES
 
@@ -23,6 +24,14 @@ def _is_armature(self, obj):
 
 def _is_curve(self, obj):
     return obj.type == "CURVE"
+
+
+class MLD_SequenceRow(bpy.types.PropertyGroup):
+    """One segment of a prompt sequence: what happens, for how long."""
+
+    prompt: StringProperty(name="Prompt", description="What happens in this segment", default="a person walks forward")
+    seconds: FloatProperty(name="Seconds", description="Length of this segment", default=3.0, min=_LIMITS.min_seconds,
+                           max=_LIMITS.max_seconds - 0.5, step=50, precision=1, unit="TIME_ABSOLUTE")
 
 
 class MLD_SceneSettings(bpy.types.PropertyGroup):
@@ -61,6 +70,9 @@ class MLD_SceneSettings(bpy.types.PropertyGroup):
         min=1,
         max=MAX_VARIANTS,
     )
+    sequence: CollectionProperty(type=MLD_SequenceRow, name="Sequence",
+                                 description="Prompt segments made as one take, each continuing the previous one")
+    sequence_index: IntProperty(name="Segment", default=0, min=0)
     preview: BoolProperty(name="Preview", description="New takes play as a preview until you Accept or Reject them "
                           "(Reject gives the armature back the Action it had)", default=False)
     use_armature_keys: BoolProperty(
@@ -135,7 +147,7 @@ class MLD_SceneSettings(bpy.types.PropertyGroup):
     last_reduction: FloatProperty(name="Keys Kept", description="Keys kept by key reduction (1: every frame)", default=1.0)
 
 
-classes = (MLD_SceneSettings,)
+classes = (MLD_SequenceRow, MLD_SceneSettings)
 
 
 def register():
