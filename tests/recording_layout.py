@@ -30,6 +30,7 @@ class Layout:
         group, op = idname.split(".")
         assert hasattr(getattr(bpy.ops, group), op), idname
         Layout.calls.append(("operator", idname))
+        return OperatorProperties()
 
     def label(self, text="", **k):
         Layout.calls.append(("label", text))
@@ -44,6 +45,10 @@ class Layout:
 
     def separator(self, **k):
         pass
+
+
+class OperatorProperties:
+    """What ``layout.operator`` returns: the operator's properties, to be set by the panel."""
 
 
 class Host:

@@ -288,7 +288,7 @@ def test_plain_package_registers_and_unregisters(tmp_path):
     assert ("operator", "mld.generate") in drawn["empty_scene"] and ("prop", "prompt") in drawn["empty_scene"]
     assert ("operator", "mld.randomize_seed") in drawn["empty_scene"]
     assert {"seconds", "variants", "seed", "steps", "guidance", "target", "exact", "set_frame_range"} <= {
-        name for kind, name in drawn["empty_scene"] if kind == "prop"}
+        call[1] for call in drawn["empty_scene"] if call[0] == "prop"}
     assert ("operator", "mld.create_armature") not in drawn["error"]
     assert [c for c in drawn["error"] if c[0] == "label" and c[1].startswith("Length must be")]
     assert ("label", "80 frames in 0.40 s") in drawn["result"] and ("label", "walk_s0_v2") in drawn["result"]
