@@ -223,6 +223,9 @@ def _h3d_folder(root: Path) -> Path:
     (root / "new_joint_vecs").mkdir(parents=True)
     np.save(root / "new_joint_vecs" / "000001.npy", np.zeros((60, 263), np.float32))
     (root / "train.txt").write_text("000001\n")
+    (root / "val.txt").write_text("000001\n")
+    (root / "texts").mkdir()
+    (root / "texts" / "000001.txt").write_text("a person walks forward.#a/DET person/NOUN#0.0#0.0\n")
     np.save(root / "Mean.npy", np.zeros(263, np.float32))
     np.save(root / "Std.npy", np.ones(263, np.float32))
     return root

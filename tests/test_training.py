@@ -109,3 +109,26 @@ def test_vae_loss_falls_on_the_tiny_folder(folder, tmp_path, bf16):
 def test_bad_data_folder_exits_2(tmp_path, capsys):
     assert main(["train", "vae", "--data", str(tmp_path), "--out", str(tmp_path / "run")]) == 2
     assert "not a HumanML3D-format folder" in capsys.readouterr().err
+
+
+def test_vae_fine_tunes_from_a_model_folder(tmp_path, capsys):
+    """--init: the model folder's architecture and weights are where training starts (one step moves them little)."""
+    from safetensors.torch import load_file
+
+    from mld_core.cli import main
+    from mld_core.testing import tiny_model
+    from test_reliability import _h3d_folder
+
+    model = tiny_model(tmp_path / "tiny")
+    data = _h3d_folder(tmp_path / "data")
+    run = tmp_path / "run"
+    assert main(["train", "vae", "--data", str(data), "--out", str(run), "--steps", "1", "--init", str(model),
+                 "--lr", "1e-5"]) == 0
+    start, tuned = load_file(str(model / "vae.safetensors")), load_file(str(run / "vae.safetensors"))
+    assert set(start) == set(tuned)  # the tiny architecture, not the default one
+    drift = max(float((start[k].float() - tuned[k].float()).abs().max()) for k in start)
+    assert drift < 1e-3, drift
+    capsys.readouterr()
+    assert main(["train", "vae", "--data", str(data), "--out", str(tmp_path / "run2"), "--init",
+                 str(tmp_path / "nowhere")]) == 2
+    assert "is not a model folder" in capsys.readouterr().err and not (tmp_path / "run2").exists()

@@ -1,8 +1,10 @@
-"""``python -m mld_core data prepare <dataset> SRC --out DIR``: build HumanML3D-format training folders."""
+"""``python -m mld_core data prepare <dataset> SRC --out DIR`` and ``data merge A B ... --out C``: build
+HumanML3D-format training folders."""
 
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 
 def register(groups) -> None:
@@ -24,6 +26,28 @@ def register(groups) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_run_bandai)
     prepare.set_defaults(func=lambda args: _missing_dataset(prepare))
+    m = groups["data"].add_parser("merge", help="several HumanML3D-format folders as one (splits kept, one Mean/Std)",
+                                  description="Merge HumanML3D-format folders: splits kept, ids prefixed with their "
+                                  "folder's name where two folders share one, Mean/Std over the merged train split, "
+                                  "provenance.json per clip.")
+    m.add_argument("sources", nargs="+", type=Path, metavar="DIR", help="two or more prepared folders")
+    m.add_argument("--out", required=True, type=Path, metavar="DIR", help="a new (or empty) folder")
+    m.set_defaults(func=_run_merge)
+
+
+def _run_merge(args) -> int:
+    from ..cli import UsageError
+    from ..inputs import InputError
+    from .merge import merge
+
+    try:
+        summary = merge(args.sources, args.out)
+    except InputError as exc:
+        raise UsageError(str(exc)) from None
+    s = summary["splits"]
+    print(f"wrote {summary['out']}: train {s['train']}, val {s['val']}, test {s['test']} clips from "
+          f"{len(summary['sources'])} folders")
+    return 0
 
 
 def _missing_dataset(parser) -> int:

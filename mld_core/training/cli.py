@@ -22,6 +22,8 @@ def _common(p) -> None:
     p.add_argument("--no-skip", action="store_true", help="turn the long skip connections off")
     p.add_argument("--bf16", action="store_true", help="bfloat16 autocast (about 2x faster on CPUs with AVX512-BF16 or AMX)")
     p.add_argument("--config", type=Path, default=None, help="JSON overrides of the stage's config dataclass")
+    p.add_argument("--init", nargs="?", const="default", default=None, metavar="MODEL_DIR",
+                   help="fine-tune: start from a model folder's weights and architecture (no value: the bundled model)")
 
 
 def _check_data(path: str) -> None:
@@ -47,6 +49,18 @@ def _check_data(path: str) -> None:
     ids = [line.strip() for line in (root / "train.txt").read_text(errors="replace").splitlines() if line.strip()]
     if not any((root / "new_joint_vecs" / f"{i}.npy").is_file() for i in ids):
         raise UsageError(f"{root}: the training split (train.txt) names no clip found in new_joint_vecs/")
+
+
+def _init_dir(args) -> str | None:
+    """--init's model folder (checked: a model folder with a config.json), "default" meaning the bundled one."""
+    if args.init is None:
+        return None
+    from mld_core.checkpoint import DEFAULT_MODEL_DIR
+
+    path = DEFAULT_MODEL_DIR if args.init == "default" else Path(args.init)
+    if not (path / "config.json").is_file():
+        raise UsageError(f"--init {path} is not a model folder (no config.json)")
+    return str(path)
 
 
 def _overrides(args, config_class) -> dict:
@@ -114,7 +128,7 @@ def _vae_config(args, over: dict):
         vae.decoder = TransformerConfig(**{**vae.decoder.to_dict(), "layers": layers, "skip": skip})
         vae.latent_tokens = args.latent_tokens or vae.latent_tokens
     cfg = VAETrainConfig(data=args.data, out=str(args.out), seed=args.seed, threads=args.threads, steps=args.steps,
-                         minutes=args.minutes, vae=vae, **over)
+                         minutes=args.minutes, vae=vae, init=_init_dir(args), **over)
     if args.lr:
         cfg.lr = args.lr
     cfg.bf16 = cfg.bf16 or args.bf16
@@ -139,7 +153,8 @@ def _denoiser_config(args, over: dict):
         den.transformer = TransformerConfig(**{**den.transformer.to_dict(), "layers": args.layers or den.transformer.layers,
                                                "skip": not args.no_skip, "cross_attention": args.cross_attention})
     cfg = DenoiserTrainConfig(data=args.data, vae=str(args.vae), out=str(args.out), cond=args.cond, seed=args.seed,
-                              threads=args.threads, steps=args.steps, minutes=args.minutes, denoiser=den, **over)
+                              threads=args.threads, steps=args.steps, minutes=args.minutes, denoiser=den,
+                              init=_init_dir(args), **over)
     if args.lr:
         cfg.lr = args.lr
     cfg.bf16 = cfg.bf16 or args.bf16

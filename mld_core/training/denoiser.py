@@ -54,6 +54,7 @@ class DenoiserTrainConfig:
     guidance_scale: float = 4.0
     bf16: bool = False  # bfloat16 autocast for forward/backward (fp32 weights, optimiser and EMA)
     text_encoder: dict = field(default_factory=lambda: {"kind": "minilm", "path": None})
+    init: str | None = None  # a model folder to continue from (fine-tuning): its denoiser and latent normalisation
     denoiser: DenoiserConfig = field(default_factory=DenoiserConfig)
 
     def __post_init__(self):
@@ -177,7 +178,10 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     if not units:
         raise ValueError(f"{cfg.data}: the train split is empty")
     actions = sorted({u.label for u in units if u.label != "?"}) if cfg.cond == "action" else list(base.actions)
-    dcfg = cfg.denoiser
+    init = load_config(Path(cfg.init)) if cfg.init else None
+    if init is not None and init.denoiser is None:
+        raise ValueError(f"--init {cfg.init} has no denoiser to continue from")
+    dcfg = init.denoiser if init is not None else cfg.denoiser
     dcfg.cond = cfg.cond
     dcfg.latent_tokens, dcfg.latent_dim, dcfg.max_frames = base.vae.latent_tokens, base.vae.latent_dim, base.max_frames
     if cfg.cond == "action":
@@ -189,6 +193,8 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     mu, lengths, unit_of = lat["mu"], lat["lengths"], lat["unit"]
     latent_mean = float(mu.mean())
     latent_scale = float(1.0 / mu.std())
+    if init is not None:  # the denoiser being continued learned latents normalised this way
+        latent_mean, latent_scale = init.latent_mean, init.latent_scale
     z0_all = (mu - latent_mean) * latent_scale  # (N, n, d)
     captions = sorted({c for u in units for c in u.captions})
     caption_index = {c: i for i, c in enumerate(captions)}
@@ -207,6 +213,8 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
 
     # 3. Model, EMA, optimiser, sampling weights.
     denoiser = LatentDenoiser(dcfg)
+    if init is not None and not resume:
+        load_weights(Path(cfg.init) / "denoiser.safetensors", denoiser)
     ema = copy.deepcopy(denoiser).requires_grad_(False)
     opt = torch.optim.AdamW(denoiser.parameters(), lr=cfg.lr, weight_decay=0.01)
     step, extra = load_train_state(out, denoiser, opt) if resume else (0, {})

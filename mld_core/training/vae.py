@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from mld_core.checkpoint import ModelConfig, save_json, save_weights, skeleton_info
+from mld_core.checkpoint import ModelConfig, load_config, load_weights, save_json, save_weights, skeleton_info
 from mld_core.models.vae import MotionVAE, VAEConfig
 from mld_core.training.common import (Budget, balanced_weights, load_train_state, lr_factor, save_train_state, set_lr,
                                      setup_torch)
@@ -40,6 +40,7 @@ class VAETrainConfig:
     val_every: int = 250
     val_clips: int = 200
     bf16: bool = False  # bfloat16 autocast for forward/backward (fp32 weights and optimiser); ~2x on AVX512-BF16 CPUs
+    init: str | None = None  # a model folder to continue from (fine-tuning): its VAE's config and weights
     vae: VAEConfig = field(default_factory=VAEConfig)
 
     def __post_init__(self):
@@ -125,6 +126,11 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
     setup_torch(cfg.seed, cfg.threads)
     mean, std = load_mean_std(cfg.data)
     mean, std = np.asarray(mean, np.float32), np.asarray(std, np.float32)
+    if cfg.init and not resume:  # fine-tuning: the model folder's architecture, then its weights (below)
+        cfg.vae = load_config(Path(cfg.init)).vae
+        if cfg.vae.feature_dim != int(mean.shape[0]):
+            raise ValueError(f"--init {cfg.init} works on {cfg.vae.feature_dim}-d features, {cfg.data} has "
+                             f"{int(mean.shape[0])}")
     cfg.vae.feature_dim = int(mean.shape[0])
     train = load_split(cfg.data, "train")
     val = load_split(cfg.data, "val")
@@ -133,6 +139,8 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
     rng = np.random.default_rng(cfg.seed)
     val = [val[i] for i in sorted(rng.choice(len(val), size=min(cfg.val_clips, len(val)), replace=False))] if val else []
     vae = MotionVAE(cfg.vae)
+    if cfg.init and not resume:
+        load_weights(Path(cfg.init) / "vae.safetensors", vae)
     opt = torch.optim.AdamW(vae.parameters(), lr=cfg.lr, weight_decay=0.0)
     step, extra = (load_train_state(out, vae, opt) if resume else (0, {}))
     sampler = CropSampler(train, mean, std, cfg.min_frames, cfg.max_frames, cfg.frames_per_batch,
