@@ -338,7 +338,8 @@ class MLDPipeline:
     def sequence(self, segments: Sequence[tuple[str, float]], *, seed: int = 0, overlap_s: float = 0.5,
                  **kwargs) -> MLDOutput:
         """One motion from ``[(prompt, seconds), ...]``: each segment continues the previous one (its first
-        ``overlap_s`` seconds are constrained to the previous one's last, and the features cross-fade there), so
+        ``overlap_s`` seconds are constrained to the previous one's last, by refining the features only: the latent
+        stays the segment prompt's sample; the features cross-fade there), so
         position and facing carry over. Segment k uses seed ``seed + k``. Returns one row; ``timings["segments"]``
         holds each segment's first frame."""
         from mld_core.constraints import Constraints, Continuation
@@ -354,7 +355,7 @@ class MLDPipeline:
         for k, (prompt, seconds) in enumerate(segments[1:], start=1):
             tail = features_to_joints(features[-overlap:])  # the last frames, in their own frame
             out = self(prompt, seconds + overlap / self.config.fps, seed=seed + k,
-                       constraints=Constraints([Continuation(tail)]), **kwargs)
+                       constraints=Constraints([Continuation(tail)], steps=0), **kwargs)
             residuals += out.residuals[0]
             starts.append(len(features) - overlap)
             new = out.features[0, : int(out.lengths[0])]

@@ -129,9 +129,11 @@ def sequences(pipe, seeds: int, data: Path) -> list[dict]:
         for seed in range(seeds):
             out = pipe.sequence([(p, s) for p, s, _ in segments], seed=seed)
             starts = out.timings["segments"] + [int(out.lengths[0])]
+            overlap = 10  # a later segment's first 0.5 s repeat the previous one's last: judge its own frames
             jerk = max_jerk(out.joints[0])
             for k, (prompt, seconds, label) in enumerate(segments):
-                passed.append(physical.passes(out.joints[0, starts[k]:starts[k + 1]], label))
+                own = starts[k] + (overlap if k else 0)
+                passed.append(physical.passes(out.joints[0, own:starts[k + 1]], label))
                 free = pipe([prompt], seconds=seconds, seed=seed)
                 free_passed.append(physical.passes(free.joints[0, : int(free.lengths[0])], label))
                 if k:
