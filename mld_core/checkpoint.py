@@ -16,6 +16,7 @@ from safetensors.torch import load_file, save_file
 from mld_core.fileio import atomic_write
 from mld_core.models.denoiser import DenoiserConfig
 from mld_core.models.vae import VAEConfig
+from mld_core.motion.repair import RepairConfig
 from mld_core.schedulers import SchedulerConfig
 
 FORMAT = "mld-core-model"
@@ -47,9 +48,14 @@ class ModelConfig:
     guidance_scale: float = 4.0
     num_inference_steps: int = 50
     skeleton: dict = field(default_factory=dict)
+    repair: RepairConfig = field(default_factory=RepairConfig)  # mld_core.motion.repair, on free 263-d takes
     provenance: dict = field(default_factory=dict)
 
     def __post_init__(self):
+        if isinstance(self.repair, dict):
+            self.repair = RepairConfig(**self.repair)
+        elif not isinstance(self.repair, RepairConfig):
+            raise ValueError(f"repair must be a JSON object, got {self.repair!r}")
         if isinstance(self.vae, dict):
             self.vae = VAEConfig(**self.vae)
         if isinstance(self.denoiser, dict):
@@ -149,6 +155,19 @@ def check_config(config: ModelConfig) -> None:
         raise ValueError("mean/std hold non-finite values (NaN or inf)")
     if (std <= 0).any():
         raise ValueError("std must be positive")
+    _check_repair(config.repair)
+
+
+def _check_repair(repair: RepairConfig) -> None:
+    for name in ("bone_lengths", "plant_feet"):
+        if not isinstance(getattr(repair, name), bool):
+            raise ValueError(f"repair.{name} must be true or false, got {getattr(repair, name)!r}")
+    for name in ("contact_height_m", "model_weight", "smooth_frames", "max_correction_m"):
+        value = getattr(repair, name)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
+            raise ValueError(f"repair.{name} must be a finite number >= 0, got {value!r}")
+    if repair.model_weight <= 0:
+        raise ValueError("repair.model_weight must be above 0")
 
 
 def save_model(model_dir: Path, config: ModelConfig, vae: torch.nn.Module, denoiser: torch.nn.Module | None = None,

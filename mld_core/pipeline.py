@@ -25,6 +25,7 @@ from mld_core.checkpoint import DEFAULT_MODEL_DIR, CheckpointError, ModelConfig,
 from mld_core.models.denoiser import LatentDenoiser
 from mld_core.constraints import planted_foot_speed
 from mld_core.motion.features import FOOT_CONTACT, features_to_joints
+from mld_core.motion.repair import repair_features
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import DDIMScheduler
 
@@ -240,13 +241,14 @@ class MLDPipeline:
                  actions: Sequence | None = None, num_inference_steps: int | None = None,
                  guidance_scale: float | None = None, seed: int | Sequence[int] = 0, num_variants: int = 1,
                  callback: Callable[[int, int], bool | None] | None = None, unconditional: bool = False,
-                 rank: bool = False, constraints=None) -> MLDOutput:
+                 rank: bool = False, constraints=None, repair: bool = True) -> MLDOutput:
         """Generate ``num_variants`` motions per prompt; row i*num_variants + v uses seed ``seed + v``, or
         ``seed[i] + v`` when ``seed`` is a sequence (one per prompt). Any row equals the single run with its seed.
         ``unconditional`` samples with the null condition (the prompts then only label the rows). ``rank`` scores
         every row (``out.badges``) and orders each prompt's variants best first (mld_core.eval.quality.best_first).
         ``constraints`` (a ``mld_core.constraints.Constraints``: poses to hit, a root path, a loop) refines each
-        sampled latent to meet them; ``out.residuals`` says how well each row did."""
+        sampled latent to meet them; ``out.residuals`` says how well each row did. ``repair`` applies the model's
+        repairs (config ``repair``: one skeleton, planted feet; mld_core.motion.repair) to free takes."""
         if self.denoiser is None:
             raise CheckpointError("this model folder has only a VAE; sample with sample_prior() or train a denoiser")
         timings = {}
@@ -320,6 +322,12 @@ class MLDPipeline:
             features = self.latents_to_features(z, lengths)
         timings["decode_s"] = time.perf_counter() - t0
 
+        # 5b. Repairs of free takes: one skeleton, planted feet (constraints already place the root and joints).
+        if repair and not constraints:
+            t0 = time.perf_counter()
+            features = self.repair(features, lengths.tolist())
+            timings["repair_s"] = time.perf_counter() - t0
+
         # 6. Joints from the features.
         joints = self.joints_from_features(features, lengths.tolist())
         out = MLDOutput(features, joints, lengths.cpu().numpy(), row_prompts, seeds, self.config.fps,
@@ -349,12 +357,13 @@ class MLDPipeline:
         if not segments:
             raise InputError("a sequence needs at least one (prompt, seconds) segment")
         overlap = int(round(overlap_s * self.config.fps))
-        first = self(segments[0][0], segments[0][1], seed=seed, **kwargs)
+        repair = kwargs.pop("repair", True)  # once, on the whole sequence (below)
+        first = self(segments[0][0], segments[0][1], seed=seed, repair=False, **kwargs)
         features = first.features[0, : int(first.lengths[0])]  # (T, F)
         starts, residuals = [0], []
         for k, (prompt, seconds) in enumerate(segments[1:], start=1):
             tail = features_to_joints(features[-overlap:])  # the last frames, in their own frame
-            out = self(prompt, seconds + overlap / self.config.fps, seed=seed + k,
+            out = self(prompt, seconds + overlap / self.config.fps, seed=seed + k, repair=False,
                        constraints=Constraints([Continuation(tail)], steps=0), **kwargs)
             residuals += out.residuals[0]
             starts.append(len(features) - overlap)
@@ -362,11 +371,23 @@ class MLDPipeline:
             w = np.linspace(0.0, 1.0, overlap)[:, None]  # cross-fade the overlap: both are nearly the same frames
             seam = (1 - w) * features[-overlap:] + w * new[:overlap]
             features = np.concatenate([features[:-overlap], seam, new[overlap:]])  # (T, F)
+        if repair:
+            features = self.repair(features[None], [len(features)])[0]
         joints = self.joints_from_features(features[None], [len(features)])
         timings = {"segments": starts, "total_s": time.perf_counter() - t_start}
         return MLDOutput(features[None].astype(np.float32), joints, np.array([len(features)]),
                          [" | ".join(p for p, _ in segments)], [seed], self.config.fps, self.model_id, timings,
                          residuals=[residuals])
+
+    def repair(self, features: np.ndarray, lengths: list) -> np.ndarray:
+        """Each row's first ``lengths[i]`` frames with the config's repairs applied (a copy; 263-d features only)."""
+        cfg = self.config.repair
+        if features.shape[-1] != 263 or not (cfg.bone_lengths or cfg.plant_feet):
+            return features
+        out = features.copy()
+        for i, n in enumerate(lengths):
+            out[i, :n] = repair_features(features[i, :n], cfg)
+        return out
 
     @torch.inference_mode()
     def sample_prior(self, seconds: float = 4.0, num: int = 1, seed: int = 0) -> MLDOutput:

@@ -117,8 +117,9 @@ def test_generate_refuses_bad_paths(model, tmp_path, capsys):
 
 
 def test_a_sequence_is_one_continuous_motion(pipe):
+    # repair=False: the tiny model's skeleton is noise (hips 0.9 m from the pelvis), which no repair can mend
     out = pipe.sequence([("a person walks", 2.0), ("a person waves", 2.0), ("a person bows", 2.0)], seed=3,
-                        num_inference_steps=2)
+                        num_inference_steps=2, repair=False)
     assert out.joints.shape == (1, 120, 22, 3) and out.lengths.tolist() == [120]
     assert out.timings["segments"] == [0, 30, 70]  # a later segment starts with the previous one's last 0.5 s
     assert len(out.residuals[0]) == 2 and all(kind == "Continuation" for kind, _, _ in out.residuals[0])

@@ -193,7 +193,8 @@ def test_batch_of_two_equals_two_single_runs(pipe):
 
 
 def test_two_step_ddim_matches_pinned_numbers(pipe):
-    out = pipe(["a person walks forward"], seconds=1.0, seed=0, num_inference_steps=2, guidance_scale=2.0)
+    out = pipe(["a person walks forward"], seconds=1.0, seed=0, num_inference_steps=2, guidance_scale=2.0,
+               repair=False)  # the sampler alone; tests/test_repair.py covers the repairs
     got = out.features[0, :3, :4]
     pinned = np.array(PINNED_2STEP, np.float32)
     np.testing.assert_allclose(got, pinned, atol=2e-4)

@@ -88,11 +88,13 @@ class MotionVAE(nn.Module):
         z = mu + torch.randn_like(mu) * (0.5 * logvar).exp() if sample else mu
         return self.decode(z, lengths, max_len=x.shape[1]), mu, logvar
 
-    def loss(self, x: torch.Tensor, lengths: torch.Tensor) -> tuple[torch.Tensor, dict]:
-        """MSE on valid frames of normalised features + kl_weight * KL(q(z|x) || N(0, I))."""
+    def loss(self, x: torch.Tensor, lengths: torch.Tensor, return_recon: bool = False):
+        """MSE on valid frames of normalised features + kl_weight * KL(q(z|x) || N(0, I)): (loss, parts), and the
+        reconstruction (B, T, F) too with ``return_recon``."""
         recon, mu, logvar = self(x, lengths)
         recon, mu, logvar = recon.float(), mu.float(), logvar.float()  # the loss in fp32 under autocast too
         valid = ~padding_mask(lengths, x.shape[1])  # (B, T)
         mse = ((recon - x) ** 2).mean(-1)[valid].mean()
         kl = (-0.5 * (1 + logvar - mu**2 - logvar.exp())).sum(-1).mean()
-        return mse + self.config.kl_weight * kl, {"mse": mse.item(), "kl": kl.item()}
+        loss, parts = mse + self.config.kl_weight * kl, {"mse": mse.item(), "kl": kl.item()}
+        return (loss, parts, recon) if return_recon else (loss, parts)

@@ -1,0 +1,148 @@
+"""Inference-time repairs of generated motion: planted feet that do not slide, and one skeleton per take.
+
+- :func:`plant_feet` re-estimates the root's ground velocity (feature channels 1-2) from the pose: while a foot
+  joint is in contact (the take's own contact channels, and near its lowest height), the root moves so that the
+  foot stays where it is; elsewhere the generated root velocity is kept. The pose, rotations and the root's
+  height and turning are unchanged. docs/evaluation.md ("Where the skating comes from") has the measurements.
+- :func:`keep_bone_lengths` rebuilds joints (T, 22, 3) with fixed bone lengths, keeping every bone's direction
+  and the pelvis: the decoded joints otherwise stretch bones by 5-12 mm SD within a take.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from mld_core.motion import skeleton as sk
+from mld_core.motion.features import FOOT_CONTACT, RIC, recover_root, gaussian_filter1d
+from mld_core.motion.quaternion import qinv, qrot
+
+FOOT_JOINTS = (7, 10, 8, 11)  # the order of the contact channels: left ankle, left toe, right ankle, right toe
+
+
+@dataclass
+class RepairConfig:
+    """The repairs a pipeline applies to each free take (a model folder's config.json "repair" entry)."""
+
+    bone_lengths: bool = True  # features_with_bone_lengths: one skeleton per take
+    plant_feet: bool = True  # plant_feet: the root moves so that planted feet do not slide
+    contact_height_m: float = 0.05  # a foot joint counts as planted only this close to its lowest height
+    model_weight: float = 0.05  # weight of the generated root step against a fully planted foot
+    smooth_frames: float = 1.0  # Gaussian sigma (frames) applied to the correction of the root steps
+    max_correction_m: float = 0.05  # per frame: a larger correction is no plant but a pose jump, and is capped
+
+
+def repair_features(features: np.ndarray, config: RepairConfig | None = None) -> np.ndarray:
+    """One take's features (T, 263) with the repairs ``config`` turns on, in order: bone lengths, planted feet."""
+    cfg = config or RepairConfig()
+    out = np.asarray(features, dtype=np.float64)
+    if cfg.bone_lengths:
+        out = features_with_bone_lengths(out)
+    if cfg.plant_feet:
+        out = plant_feet(out, cfg)
+    return out.astype(np.asarray(features).dtype)
+
+
+def _world_offsets(features: np.ndarray, root_quat: torch.Tensor) -> np.ndarray:
+    """Foot joints relative to the root's ground position, in world axes: (T, 4, 3)."""
+    ric = torch.from_numpy(features[:, RIC]).reshape(len(features), 21, 3)  # (T, 21, 3)
+    feet = ric[:, [j - 1 for j in FOOT_JOINTS]]  # (T, 4, 3)
+    return qrot(qinv(root_quat)[:, None, :].expand(-1, 4, -1), feet).numpy()
+
+
+def plant_feet(features: np.ndarray, config: RepairConfig | None = None) -> np.ndarray:
+    """Features (T, 263) with the root's ground velocity re-estimated so planted feet stay put (a copy)."""
+    cfg = config or RepairConfig()
+    f = np.asarray(features, dtype=np.float64)
+    if len(f) < 3:
+        return f.copy()
+    root_quat, _ = recover_root(torch.from_numpy(f))  # (T, 4)
+    offsets = _world_offsets(f, root_quat)  # (T, 4, 3)
+    inv = qinv(root_quat)
+    vel = torch.zeros(len(f) - 1, 3, dtype=torch.float64)
+    vel[:, 0], vel[:, 2] = torch.from_numpy(f[:-1, 1]), torch.from_numpy(f[:-1, 2])
+    model_step = qrot(inv[1:], vel).numpy()[:, [0, 2]]  # (T-1, 2) world displacement t -> t+1
+
+    foot_step = -(offsets[1:, :, [0, 2]] - offsets[:-1, :, [0, 2]])  # (T-1, 4, 2) root steps that plant each joint
+    height = offsets[:, :, 1] - offsets[:, :, 1].min(axis=0)  # (T, 4)
+    low = (height[:-1] < cfg.contact_height_m) & (height[1:] < cfg.contact_height_m)  # (T-1, 4)
+    weight = np.clip(f[:-1, FOOT_CONTACT], 0.0, 1.0) * low  # (T-1, 4)
+    total = cfg.model_weight + weight.sum(axis=1, keepdims=True)  # (T-1, 1)
+    step = (cfg.model_weight * model_step + (weight[:, :, None] * foot_step).sum(axis=1)) / total  # (T-1, 2)
+    correction = step - model_step
+    size = np.linalg.norm(correction, axis=1, keepdims=True)
+    correction *= np.minimum(1.0, cfg.max_correction_m / np.maximum(size, 1e-12))
+    if cfg.smooth_frames > 0:
+        correction = gaussian_filter1d(correction, cfg.smooth_frames)
+    step = model_step + correction
+
+    world = np.zeros((len(f) - 1, 3))
+    world[:, 0], world[:, 2] = step[:, 0], step[:, 1]
+    local = qrot(root_quat[1:], torch.from_numpy(world)).numpy()  # back into the next frame's facing frame
+    out = f.copy()
+    out[:-1, 1], out[:-1, 2] = local[:, 0], local[:, 2]
+    return out
+
+
+LEGS = ((1, 4, 7, 10), (2, 5, 8, 11))  # hip, knee, ankle, toe
+
+
+def features_with_bone_lengths(features: np.ndarray, lengths: np.ndarray | None = None) -> np.ndarray:
+    """Features (T, 263) whose root-relative joints (RIC) have one length per bone (default: the reference skeleton,
+    which every training clip has): bones keep their directions (keep_bone_lengths), except the legs: each toe
+    stays where it was generated, the ankle sits one foot length behind it along the generated foot, and the knee
+    bends to reach it (two-bone IK), so planted feet stay planted. The root, rotations and contact channels are unchanged."""
+    f = np.asarray(features, dtype=np.float64)
+    target = np.asarray(sk.REFERENCE_BONE_LENGTHS if lengths is None else lengths, np.float64)
+    local = np.zeros((len(f), sk.NUM_JOINTS, 3))  # (T, 22, 3) the pelvis at x = z = 0
+    local[:, 0, 1] = f[:, 3]
+    local[:, 1:] = f[:, RIC].reshape(len(f), 21, 3)
+    fixed = keep_bone_lengths(local, target)
+    for hip, knee, ankle, toe in LEGS:  # the toe stays; the ankle sits one foot length behind it, the knee bends
+        foot = local[:, toe] - local[:, ankle]  # (T, 3)
+        foot_dir = foot / np.maximum(np.linalg.norm(foot, axis=-1, keepdims=True), 1e-9)
+        ankle_goal = local[:, toe] - foot_dir * target[toe]
+        fixed[:, knee], fixed[:, ankle] = two_bone_ik(fixed[:, hip], ankle_goal, local[:, knee], target[knee],
+                                                      target[ankle])
+        fixed[:, toe] = fixed[:, ankle] + foot_dir * target[toe]
+    out = f.copy()
+    out[:, RIC] = fixed[:, 1:].reshape(len(f), -1)
+    return out
+
+
+def two_bone_ik(root: np.ndarray, goal: np.ndarray, pole: np.ndarray, upper: float, lower: float,
+                forward=(0.0, 0.0, 1.0), forward_bias: float = 0.02):
+    """Middle and end joints (T, 3) each of a chain root -> middle -> end with the given bone lengths whose end
+    reaches ``goal`` (or points at it, fully stretched, when out of reach), bending towards ``pole``; a small bias
+    towards ``forward`` (metres) decides the bend where the pole lies on the root-goal line (a straight leg)."""
+    to_goal = goal - root  # (T, 3)
+    dist = np.linalg.norm(to_goal, axis=-1, keepdims=True)  # (T, 1)
+    axis = to_goal / np.maximum(dist, 1e-9)
+    d = np.clip(dist, abs(upper - lower) + 1e-6, upper + lower - 1e-6)
+    hint = (pole - root) + forward_bias * np.asarray(forward, np.float64)
+    bend = hint - (hint * axis).sum(-1, keepdims=True) * axis  # the pole, perpendicular to the axis
+    bend_len = np.linalg.norm(bend, axis=-1, keepdims=True)
+    fallback = np.cross(axis, np.array([1.0, 0.0, 0.0]))  # knees forward (+Z when the leg hangs down)
+    bend = np.where(bend_len > 1e-6, bend / np.maximum(bend_len, 1e-9), fallback)
+    along = (upper ** 2 - lower ** 2 + d ** 2) / (2.0 * d)  # (T, 1) distance of the middle joint along the axis
+    across = np.sqrt(np.maximum(upper ** 2 - along ** 2, 0.0))
+    middle = root + axis * along + bend * across
+    return middle, root + axis * d
+
+
+def keep_bone_lengths(joints: np.ndarray, lengths: np.ndarray | None = None) -> np.ndarray:
+    """Joints (T, 22, 3) rebuilt from the pelvis outwards with one length per bone (default: the take's median
+    lengths), each bone keeping its direction."""
+    j = np.asarray(joints, dtype=np.float64)
+    parents = np.asarray(sk.PARENTS)
+    bones = j[:, 1:] - j[:, parents[1:]]  # (T, 21, 3)
+    norm = np.linalg.norm(bones, axis=-1, keepdims=True)  # (T, 21, 1)
+    target = np.median(norm[..., 0], axis=0) if lengths is None else np.asarray(lengths, np.float64)[1:]
+    dirs = np.where(norm > 1e-9, bones / np.maximum(norm, 1e-9), sk.RAW_OFFSETS[1:])
+    out = np.empty_like(j)
+    out[:, 0] = j[:, 0]
+    for k in range(1, sk.NUM_JOINTS):  # parents come before children
+        out[:, k] = out[:, parents[k]] + dirs[:, k - 1] * target[k - 1]
+    return out.astype(np.asarray(joints).dtype if np.asarray(joints).dtype.kind == "f" else np.float64)

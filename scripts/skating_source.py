@@ -1,0 +1,118 @@
+"""Where does foot skating come from? Real walks vs VAE reconstructions vs diffusion samples, and root vs pose.
+
+    python scripts/skating_source.py --data /work/data/bandai [--model DIR] [--clips 24] [--json out.json]
+
+For each locomotion content of the test split (at most ``--clips`` clips each, their first max_frames frames) it
+prints the foot skating ratio (mld_core.eval.quality) and the per-take bone length SD (mm) of:
+
+- ``real``: the clip's own features -> joints;
+- ``recon``: VAE encode (mean) -> decode at the clip's length;
+- ``recon pose + real root``: the reconstruction's root-relative channels under the real root channels (0-3);
+- ``real pose + recon root``: the other way round; the two say whether the root trajectory or the pose skates;
+- ``sample``: the diffusion model on the clip's first caption at the clip's length (seed = clip index);
+- ``sample, root from contacts`` etc.: the inference-time repairs in mld_core.motion.repair, when present.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from mld_core.data.dataset import load_split  # noqa: E402
+from mld_core.eval.quality import foot_skating_ratio, mean_jerk  # noqa: E402
+from mld_core.motion import skeleton as sk  # noqa: E402
+from mld_core.motion.features import features_to_joints  # noqa: E402
+from mld_core.motion.repair import features_with_bone_lengths, keep_bone_lengths, plant_feet  # noqa: E402
+from mld_core.pipeline import MLDPipeline  # noqa: E402
+
+CONTENTS = ("walk", "run", "dash", "walk-back", "walk-left", "walk-right", "walk-turn-left", "walk-turn-right")
+ROOT = slice(0, 4)
+
+
+def bone_sd_mm(joints: np.ndarray) -> float:
+    """Mean over bones of the SD of each bone's length within the take, mm."""
+    parents = np.asarray(sk.PARENTS)
+    child = np.arange(1, 22)
+    length = np.linalg.norm(joints[:, child] - joints[:, parents[child]], axis=-1)  # (T, 21)
+    return float(length.std(axis=0).mean() * 1000.0)
+
+
+def reconstruct(pipe: MLDPipeline, features: list[np.ndarray]) -> list[np.ndarray]:
+    out = []
+    for f in features:
+        x = torch.from_numpy(pipe.normalize(f)[None].astype(np.float32))  # (1, T, F)
+        lengths = torch.tensor([len(f)])
+        with torch.no_grad():
+            mu, _ = pipe.vae.encode(x, lengths)
+            out.append(pipe.latents_to_features(mu, lengths)[0, : len(f)])
+    return out
+
+
+def swap_root(pose_from: np.ndarray, root_from: np.ndarray) -> np.ndarray:
+    out = pose_from.copy()
+    out[:, ROOT] = root_from[:, ROOT]
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--model", default=None)
+    ap.add_argument("--clips", type=int, default=24)
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args(argv)
+    torch.manual_seed(0)
+    pipe = MLDPipeline.from_pretrained(args.model)
+    clips = load_split(args.data, args.split, min_frames=pipe.config.min_frames)
+    rows = {}
+    for content in CONTENTS:
+        chosen = [c for c in clips if c.action == content][: args.clips]
+        if not chosen:
+            continue
+        real = [c.features[: pipe.config.max_frames] for c in chosen]
+        recon = reconstruct(pipe, real)
+        lengths = [len(f) for f in real]
+        out = pipe([c.captions[0].text for c in chosen], [n / pipe.fps for n in lengths],
+                   seed=list(range(len(chosen))))
+        samples = [out.features[i, :n] for i, n in enumerate(lengths)]
+        variants = {"real": real, "recon": recon,
+                    "recon pose + real root": [swap_root(r, t) for r, t in zip(recon, real)],
+                    "real pose + recon root": [swap_root(t, r) for r, t in zip(recon, real)],
+                    "sample": samples,
+                    "sample, planted": [plant_feet(f) for f in samples],
+                    "sample, ref skeleton": [features_with_bone_lengths(f) for f in samples],
+                    "sample, ref skeleton, planted": [plant_feet(features_with_bone_lengths(f)) for f in samples],
+                    "recon, planted": [plant_feet(f) for f in recon]}
+        rows[content] = {}
+        for name, feats in variants.items():
+            joints = [features_to_joints(f.astype(np.float64)) for f in feats]
+            rows[content][name] = {"skating": float(np.mean([foot_skating_ratio(j) for j in joints])),
+                                   "bone_sd_mm": float(np.mean([bone_sd_mm(j) for j in joints])),
+                                   "jerk": float(np.mean([mean_jerk(j) for j in joints]))}
+            rows[content][name]["below_floor_cm"] = float(np.mean([max(0, -j[:, :, 1].min()) * 100 for j in joints]))
+            if name in ("sample", "sample, planted"):
+                fixed = [keep_bone_lengths(j) for j in joints]
+                rows[content][name + ", one skeleton"] = {
+                    "skating": float(np.mean([foot_skating_ratio(j) for j in fixed])),
+                    "bone_sd_mm": float(np.mean([bone_sd_mm(j) for j in fixed])),
+                    "jerk": float(np.mean([mean_jerk(j) for j in fixed]))}
+        print(f"{content} ({len(chosen)} clips)", flush=True)
+        for name, r in rows[content].items():
+            print(f"  {name:32s} skating {r['skating']:.3f}  bone SD {r['bone_sd_mm']:5.1f} mm  jerk {r['jerk']:5.1f}"
+                  f"  below floor {r.get('below_floor_cm', float('nan')):4.1f} cm",
+                  flush=True)
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
