@@ -162,7 +162,8 @@ def _check_repair(repair: RepairConfig) -> None:
     for name in ("bone_lengths", "plant_feet"):
         if not isinstance(getattr(repair, name), bool):
             raise ValueError(f"repair.{name} must be true or false, got {getattr(repair, name)!r}")
-    for name in ("contact_height_m", "model_weight", "smooth_frames", "max_correction_m"):
+    for name in ("contact_height_m", "model_weight", "smooth_frames", "max_correction_m",
+                 "keep_travel_frames", "min_travel_kept", "min_travel_m"):
         value = getattr(repair, name)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
             raise ValueError(f"repair.{name} must be a finite number >= 0, got {value!r}")

@@ -203,9 +203,13 @@ class Tally:
         self.sided = 0
         self.side_ok = 0
         self.opposite = 0
+        self.skating = 0.0
         self.failed = defaultdict(int)
 
     def add(self, joints: np.ndarray, content: str, fps: float) -> None:
+        from mld_core.eval.quality import foot_skating_ratio
+
+        self.skating += foot_skating_ratio(joints, fps)
         result = physical.classify(joints, fps)
         failed = physical.failed_checks(joints, content, result, fps)
         self.n += 1
@@ -225,6 +229,7 @@ class Tally:
         self.sided += other.sided
         self.side_ok += other.side_ok
         self.opposite += other.opposite
+        self.skating += other.skating
         for k, v in other.failed.items():
             self.failed[k] += v
 
@@ -235,6 +240,7 @@ class Tally:
             "side_n": self.sided,
             "side_accuracy": self.side_ok / self.sided if self.sided else None,
             "opposite_side": self.opposite / self.sided if self.sided else None,
+            "skating": self.skating / self.n if self.n else None,
             "failed_checks": dict(self.failed),
         }
 
@@ -267,7 +273,7 @@ def build_requests(clips: dict, modes: list[str], lengths: list, seeds: int, max
 
 
 def generate(pipe, reqs: list[dict], batch: int, steps: int | None, guidance: float | None, fps: float,
-             tallies: dict) -> float:
+             tallies: dict, repair: bool = True) -> float:
     """Run the requests through the pipeline in batches (grouped by seed/variants) and tally the results."""
     from tqdm import tqdm
 
@@ -283,7 +289,7 @@ def generate(pipe, reqs: list[dict], batch: int, steps: int | None, guidance: fl
             for a in range(0, len(rs), per):
                 chunk = rs[a:a + per]
                 kwargs = dict(seconds=[r["seconds"] for r in chunk], seed=seed, num_variants=variants,
-                              num_inference_steps=steps, guidance_scale=guidance)
+                              num_inference_steps=steps, guidance_scale=guidance, repair=repair)
                 if cond == "action":
                     out = pipe([r["content"] for r in chunk], actions=[r["content"] for r in chunk], **kwargs)
                 else:
@@ -333,8 +339,8 @@ def vae_reconstruct(pipe, clips: dict, lengths: list, max_clips: int, batch: int
 # ---- report ------------------------------------------------------------------------------------------------
 
 
-def _fmt(x) -> str:
-    return "   -" if x is None else f"{x:4.2f}"
+def _fmt(x, width: int = 4) -> str:
+    return "-".rjust(width) if x is None else f"{x:{width}.2f}"
 
 
 def summarise(per_content: dict[str, "Tally"], contents: list[str]) -> dict:
@@ -360,12 +366,12 @@ def summarise(per_content: dict[str, "Tally"], contents: list[str]) -> dict:
 
 def print_table(report: dict, contents: list[str]) -> None:
     cols = [k for k in report["generated"]]
-    head = f"{'content':22s} {'real n':>6s} {'pass':>4s} {'side':>4s}"
+    head = f"{'content':22s} {'real n':>6s} {'pass':>4s} {'side':>4s} {'skate':>5s}"
     for k in cols:
-        head += f" | {k:>21s}"
+        head += f" | {k:>27s}"
     print()
     if cols:
-        print(" " * 39 + "".join(f" | {'n pass side  opp':>21s}" for _ in cols))
+        print(" " * 44 + "".join(f" | {'n pass side  opp skate':>27s}" for _ in cols))
     print(head)
     print("-" * len(head))
     real = report["real"]["contents"]
@@ -374,24 +380,28 @@ def print_table(report: dict, contents: list[str]) -> None:
         if r is None:
             continue
         star = "*" if report["real"]["splits"].get(c) != "test" else " "
-        line = f"{c:21s}{star} {r['n']:6d} {_fmt(r['pass_rate'])} {_fmt(r['side_accuracy'])}"
+        line = f"{c:21s}{star} {r['n']:6d} {_fmt(r['pass_rate'])} {_fmt(r['side_accuracy'])} {_fmt(r['skating'], 5)}"
         for k in cols:
             g = report["generated"][k]["contents"].get(c)
             if g is None or g["n"] == 0:
-                line += f" | {'':>21s}"
+                line += f" | {'':>27s}"
             else:
-                line += f" | {g['n']:6d} {_fmt(g['pass_rate'])} {_fmt(g['side_accuracy'])} {_fmt(g['opposite_side'])}"
+                line += f" | {g['n']:6d} {_fmt(g['pass_rate'])} {_fmt(g['side_accuracy'])} {_fmt(g['opposite_side'])}" \
+                        f" {_fmt(g['skating'], 5)}"
         print(line)
     print("-" * len(head))
     for name in ("sided", "rare", "all"):
         r = report["real"]["overall"][name]
-        line = f"{'mean/pooled: ' + name:22s} {r['n']:6d} {_fmt(r['mean_pass_rate'])} {_fmt(r['side_accuracy'])}"
+        line = f"{'mean/pooled: ' + name:22s} {r['n']:6d} {_fmt(r['mean_pass_rate'])} {_fmt(r['side_accuracy'])} " \
+               f"{_fmt(r['skating'], 5)}"
         for k in cols:
             g = report["generated"][k]["overall"][name]
-            line += f" | {g['n']:6d} {_fmt(g['mean_pass_rate'])} {_fmt(g['side_accuracy'])} {_fmt(g['opposite_side'])}"
+            line += f" | {g['n']:6d} {_fmt(g['mean_pass_rate'])} {_fmt(g['side_accuracy'])} {_fmt(g['opposite_side'])}" \
+                    f" {_fmt(g['skating'], 5)}"
         print(line)
     print("\npass = the content's physical checks pass (mean over contents in the overall rows); side = the named side "
-          "was used (pooled); opp = the opposite side alone was used; * = no test clip, clips from train/val.")
+          "was used (pooled); opp = the opposite side alone was used; skate = mean foot skating ratio "
+          "(mld_core.eval.quality); * = no test clip, clips from train/val.")
 
 
 def _write_json(path: Path, data: dict) -> None:
@@ -424,6 +434,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--real-only", action="store_true", help="score only the real clips (no model)")
     ap.add_argument("--vae-recon", action="store_true",
                     help="also score VAE reconstructions at the clip's own length and at --seconds")
+    ap.add_argument("--no-repair", action="store_true", help="generate without the model's repairs (planted feet, "
+                    "one skeleton): the ablation")
     args = ap.parse_args(argv)
 
     contents = [c.strip() for c in args.contents.split(",") if c.strip()]
@@ -488,7 +500,7 @@ def main(argv: list[str] | None = None) -> int:
                 modes = ["captions"]  # the prompt text is not used: one "action" row per clip and seed
             reqs = build_requests(clips, modes, lengths, args.seeds, args.max_clips, pipe.min_seconds,
                                   pipe.max_seconds)
-            seconds += generate(pipe, reqs, args.batch, args.steps, args.guidance, fps, tallies)
+            seconds += generate(pipe, reqs, args.batch, args.steps, args.guidance, fps, tallies, not args.no_repair)
         n = sum(t.n for per in tallies.values() for t in per.values())
         print(f"generated and scored {n} motions in {seconds:.1f} s ({seconds / max(n, 1):.3f} s each)",
               file=sys.stderr)
@@ -498,6 +510,7 @@ def main(argv: list[str] | None = None) -> int:
             report["generated"][name] = {"contents": {c: t.as_dict() for c, t in per.items()},
                                          "overall": summarise(per, contents)}
         report.update(model=str(args.model or "default"), model_id=pipe.model_id, seeds=args.seeds,
+                      repair=not args.no_repair,
                       steps=args.steps, guidance=args.guidance, max_clips=args.max_clips, generation_s=seconds)
 
     print_table(report, contents)

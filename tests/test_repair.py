@@ -121,3 +121,17 @@ def test_a_bad_repair_entry_is_a_checkpoint_error(tmp_path, repair, words):
     (model / "config.json").write_text(json.dumps({**config, "repair": repair}))
     with pytest.raises(CheckpointError, match=words):
         load_config(model)
+
+
+def test_planting_keeps_the_travel_the_legs_do_not_carry(walk):
+    gliding = walk.copy()
+    gliding[:, 4:] = walk[0, 4:]  # the pose (and its contacts) frozen: the root glides as generated
+    travel = np.linalg.norm(np.diff(features_to_joints(gliding)[[0, -1], 0][:, [0, 2]], axis=0))
+    assert travel > 1.0
+
+    def kept(config):
+        j = features_to_joints(plant_feet(gliding, config))
+        return np.linalg.norm(np.diff(j[[0, -1], 0][:, [0, 2]], axis=0)) / travel
+
+    assert kept(RepairConfig(min_travel_kept=0.0)) < 0.25  # planted fully, the glide (all but the capped part) stops
+    assert kept(RepairConfig(min_travel_kept=0.8)) == pytest.approx(0.8, abs=0.02)

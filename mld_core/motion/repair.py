@@ -32,6 +32,9 @@ class RepairConfig:
     model_weight: float = 0.05  # weight of the generated root step against a fully planted foot
     smooth_frames: float = 1.0  # Gaussian sigma (frames) applied to the correction of the root steps
     max_correction_m: float = 0.05  # per frame: a larger correction is no plant but a pose jump, and is capped
+    keep_travel_frames: float = 0.0  # Gaussian sigma (frames) > 0: the root keeps its generated travel at this scale
+    min_travel_kept: float = 0.8  # planting may shorten a take's travel (start to end) to this share, not below
+    min_travel_m: float = 0.3  # takes that travel less than this are planted fully
 
 
 def repair_features(features: np.ndarray, config: RepairConfig | None = None) -> np.ndarray:
@@ -74,8 +77,11 @@ def plant_feet(features: np.ndarray, config: RepairConfig | None = None) -> np.n
     correction = step - model_step
     size = np.linalg.norm(correction, axis=1, keepdims=True)
     correction *= np.minimum(1.0, cfg.max_correction_m / np.maximum(size, 1e-12))
+    if cfg.keep_travel_frames > 0:  # only the slide within steps goes: the take still travels as generated
+        correction = correction - gaussian_filter1d(correction, cfg.keep_travel_frames)
     if cfg.smooth_frames > 0:
         correction = gaussian_filter1d(correction, cfg.smooth_frames)
+    correction *= _travel_share(model_step, correction, cfg)
     step = model_step + correction
 
     world = np.zeros((len(f) - 1, 3))
@@ -130,6 +136,19 @@ def two_bone_ik(root: np.ndarray, goal: np.ndarray, pole: np.ndarray, upper: flo
     across = np.sqrt(np.maximum(upper ** 2 - along ** 2, 0.0))
     middle = root + axis * along + bend * across
     return middle, root + axis * d
+
+
+def _travel_share(model_step: np.ndarray, correction: np.ndarray, cfg: RepairConfig) -> float:
+    """How much of the correction to apply (0-1) so the take keeps ``min_travel_kept`` of its travel: where the
+    generated legs do not carry the generated travel (feet that barely step on a walk backwards), planting them
+    fully would stop the take; planting less keeps what the prompt asked for and some of the slide."""
+    travel = np.linalg.norm(model_step.sum(axis=0))
+    if travel < cfg.min_travel_m:
+        return 1.0
+    kept = np.linalg.norm((model_step + correction).sum(axis=0)) / travel
+    if kept >= cfg.min_travel_kept:
+        return 1.0
+    return float(np.clip((1.0 - cfg.min_travel_kept) / max(1.0 - kept, 1e-9), 0.0, 1.0))
 
 
 def keep_bone_lengths(joints: np.ndarray, lengths: np.ndarray | None = None) -> np.ndarray:
