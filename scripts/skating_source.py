@@ -9,8 +9,9 @@ prints the foot skating ratio (mld_core.eval.quality) and the per-take bone leng
 - ``recon``: VAE encode (mean) -> decode at the clip's length;
 - ``recon pose + real root``: the reconstruction's root-relative channels under the real root channels (0-3);
 - ``real pose + recon root``: the other way round; the two say whether the root trajectory or the pose skates;
-- ``sample``: the diffusion model on the clip's first caption at the clip's length (seed = clip index);
-- ``sample, root from contacts`` etc.: the inference-time repairs in mld_core.motion.repair, when present.
+- ``sample``: the diffusion model on the clip's first caption at the clip's length (seed = clip index), unrepaired;
+- ``one skeleton`` / ``planted fully`` / ``repaired (default)``: mld_core.motion.repair's bone lengths alone, root
+  re-estimation from the planted feet with no travel kept, and the model's configured repairs.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from mld_core.data.dataset import load_split  # noqa: E402
 from mld_core.eval.quality import foot_skating_ratio, mean_jerk  # noqa: E402
 from mld_core.motion import skeleton as sk  # noqa: E402
 from mld_core.motion.features import features_to_joints  # noqa: E402
-from mld_core.motion.repair import features_with_bone_lengths, keep_bone_lengths, plant_feet  # noqa: E402
+from mld_core.motion.repair import RepairConfig, features_with_bone_lengths, plant_feet, repair_features  # noqa: E402
 from mld_core.pipeline import MLDPipeline  # noqa: E402
 
 CONTENTS = ("walk", "run", "dash", "walk-back", "walk-left", "walk-right", "walk-turn-left", "walk-turn-right")
@@ -81,33 +82,29 @@ def main(argv=None) -> int:
         recon = reconstruct(pipe, real)
         lengths = [len(f) for f in real]
         out = pipe([c.captions[0].text for c in chosen], [n / pipe.fps for n in lengths],
-                   seed=list(range(len(chosen))))
+                   seed=list(range(len(chosen))), repair=False)
         samples = [out.features[i, :n] for i, n in enumerate(lengths)]
+        full = RepairConfig(bone_lengths=False, min_travel_kept=0.0)
         variants = {"real": real, "recon": recon,
                     "recon pose + real root": [swap_root(r, t) for r, t in zip(recon, real)],
                     "real pose + recon root": [swap_root(t, r) for r, t in zip(recon, real)],
+                    "recon, planted fully": [plant_feet(f, full) for f in recon],
                     "sample": samples,
-                    "sample, planted": [plant_feet(f) for f in samples],
-                    "sample, ref skeleton": [features_with_bone_lengths(f) for f in samples],
-                    "sample, ref skeleton, planted": [plant_feet(features_with_bone_lengths(f)) for f in samples],
-                    "recon, planted": [plant_feet(f) for f in recon]}
+                    "sample, one skeleton": [features_with_bone_lengths(f) for f in samples],
+                    "sample, planted fully": [plant_feet(f, full) for f in samples],
+                    "sample, repaired (default)": [repair_features(f, pipe.config.repair) for f in samples]}
         rows[content] = {}
         for name, feats in variants.items():
             joints = [features_to_joints(f.astype(np.float64)) for f in feats]
             rows[content][name] = {"skating": float(np.mean([foot_skating_ratio(j) for j in joints])),
                                    "bone_sd_mm": float(np.mean([bone_sd_mm(j) for j in joints])),
-                                   "jerk": float(np.mean([mean_jerk(j) for j in joints]))}
-            rows[content][name]["below_floor_cm"] = float(np.mean([max(0, -j[:, :, 1].min()) * 100 for j in joints]))
-            if name in ("sample", "sample, planted"):
-                fixed = [keep_bone_lengths(j) for j in joints]
-                rows[content][name + ", one skeleton"] = {
-                    "skating": float(np.mean([foot_skating_ratio(j) for j in fixed])),
-                    "bone_sd_mm": float(np.mean([bone_sd_mm(j) for j in fixed])),
-                    "jerk": float(np.mean([mean_jerk(j) for j in fixed]))}
+                                   "jerk": float(np.mean([mean_jerk(j) for j in joints])),
+                                   "travel_m": float(np.mean([np.linalg.norm(j[-1, 0, [0, 2]] - j[0, 0, [0, 2]])
+                                                              for j in joints]))}
         print(f"{content} ({len(chosen)} clips)", flush=True)
         for name, r in rows[content].items():
             print(f"  {name:32s} skating {r['skating']:.3f}  bone SD {r['bone_sd_mm']:5.1f} mm  jerk {r['jerk']:5.1f}"
-                  f"  below floor {r.get('below_floor_cm', float('nan')):4.1f} cm",
+                  f"  travel {r['travel_m']:4.2f} m",
                   flush=True)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
