@@ -25,6 +25,26 @@ def register(groups) -> None:
     p.add_argument("--limit", type=int, default=None, help="only the first N clips (quick trials)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_run_bandai)
+    b = datasets.add_parser(
+        "bvh",
+        help="any folder of BVH files (any skeleton, units, up axis, frame rate) with captions",
+        description="Map every BVH under SRC onto the 22 joints (bone-map detection as in the add-on), detect units "
+        "and up axis, trim leading T-pose frames, cut each caption's span into segments of at most 9.8 s, mirror, "
+        "and write features, captions, splits (by file) and Mean/Std to --out. Captions: --captions CSV/TSV "
+        "(file, caption[, start_s, end_s]; several rows per file allowed), else a .txt beside each BVH (one caption "
+        "per line), else --caption-template. Files that cannot be used are listed with their reason in "
+        "prepare_report.json.",
+    )
+    b.add_argument("src", metavar="SRC", help="a folder of .bvh files (searched recursively)")
+    b.add_argument("--out", required=True, metavar="DIR", help="output folder (new, empty, or a previous output)")
+    b.add_argument("--captions", type=Path, default=None, metavar="FILE", help="CSV/TSV: file, caption[, start_s, end_s]")
+    b.add_argument("--caption-template", default=None, metavar="TEXT",
+                   help="fallback caption, e.g. 'a person {name}' ({name}: the file name in words, {folder})")
+    b.add_argument("--bone-map", type=Path, default=None, metavar="FILE", help="a bone map JSON (as the add-on saves)")
+    b.add_argument("--units", default=None, help="m, cm, mm, in, ft or metres per unit (default: detect)")
+    b.add_argument("--up", choices=("y", "z"), default=None, help="the files' up axis (default: detect)")
+    b.add_argument("--no-mirror", action="store_true", help="do not add the mirrored M<id> copies")
+    b.set_defaults(func=_run_bvh)
     prepare.set_defaults(func=lambda args: _missing_dataset(prepare))
     m = groups["data"].add_parser("merge", help="several HumanML3D-format folders as one (splits kept, one Mean/Std)",
                                   description="Merge HumanML3D-format folders: splits kept, ids prefixed with their "
@@ -47,6 +67,25 @@ def _run_merge(args) -> int:
     s = summary["splits"]
     print(f"wrote {summary['out']}: train {s['train']}, val {s['val']}, test {s['test']} clips from "
           f"{len(summary['sources'])} folders")
+    return 0
+
+
+def _run_bvh(args) -> int:
+    from ..cli import UsageError
+    from .bandai import PrepareError
+    from .bvh_library import LibraryOptions, prepare_bvh
+
+    start = time.perf_counter()
+    options = LibraryOptions(captions=args.captions, caption_template=args.caption_template, bone_map=args.bone_map,
+                             units=args.units, up=args.up, mirror=not args.no_mirror)
+    try:
+        s = prepare_bvh(args.src, args.out, options)
+    except PrepareError as exc:
+        raise UsageError(str(exc)) from None
+    sp = s["splits"]
+    print(f"wrote {s['out']}: {s['mapped']} of {s['files']} files mapped ({len(s['skipped'])} skipped, reasons in "
+          f"prepare_report.json), {s['clips']} segments + {s['mirrored']} mirrored, {s['frames']} frames; train "
+          f"{sp['train']}, val {sp['val']}, test {sp['test']}; {time.perf_counter() - start:.1f} s")
     return 0
 
 

@@ -153,7 +153,7 @@ def load_presets(directory: str | os.PathLike | None = None) -> dict[str, Preset
             parent_overrides=dict(data.get("parent_overrides", {})),
             pose_properties={b: dict(p) for b, p in data.get("pose_properties", {}).items()},
         )
-    order = ["canonical", "rigify", "rigify_metarig", "mixamo", "bandai", "bvh_common"]
+    order = ["canonical", "rigify", "rigify_metarig", "mixamo", "bandai", "bvh_common", "cmu_asf"]
     return dict(sorted(presets.items(), key=lambda kv: (order.index(kv[0]) if kv[0] in order else len(order), kv[0])))
 
 
@@ -270,6 +270,7 @@ _EXCLUDE = {
     "thumb", "index", "middle", "ring", "pinky", "finger", "fingers", "eye", "eyes", "jaw", "tongue", "teeth", "lip",
     "brow", "lid", "ear", "nose", "cheek", "chin", "breast", "heel", "palm", "parent", "socket", "helper", "pivot",
     "master", "prop", "weapon", "ctrl", "control", "offset", "null", "dummy", "upper_arm_parent", "hair", "tail",
+    "share",
 }
 _ROLE_WORDS = {
     "pelvis": ("hips", "pelvis", "hip", "cog"),
@@ -424,10 +425,15 @@ class _FuzzyMatch:
         self.take("pelvis", pelvis)
         arm_roots = [joints.get(f"{s}_collar", joints.get(f"{s}_shoulder")) for s in ("left", "right")]
         chest = self.lca(*arm_roots) if None not in arm_roots else None
-        if chest is None or chest == pelvis or pelvis not in self.ancestors(chest):
+        if chest is None or chest == pelvis:
+            return
+        # The spine starts at the pelvis, or where it branches off beside it (iClone: Hip -> Pelvis -> legs and
+        # Hip -> Waist -> spine).
+        base = pelvis if pelvis in self.ancestors(chest) else self.lca(pelvis, chest)
+        if base is None or base == chest:
             return
         below = self.ancestors(chest)
-        path = list(reversed([chest] + below[: below.index(pelvis)]))  # just above the pelvis .. the chest
+        path = list(reversed([chest] + below[: below.index(base)]))  # just above the base .. the chest
         self.take("spine3", chest)
         if len(path) >= 2:
             self.take("spine1", path[0])
