@@ -146,3 +146,56 @@ def test_the_cmu_subsets_prepare(shared, tmp_path):
                              bl.LibraryOptions(caption_template="a person moves {folder}"))
     assert summary["files"] == 163 and summary["mapped"] >= 145
     assert all("shorter than" in why for why in summary["skipped"].values())
+
+
+def _blender_take(fixtures, name="Walk_Tired.001", drop=("spine2", "left_collar", "right_collar")):
+    from mld_core.data.action_export import Take
+
+    joints = np.load(fixtures / "rigs" / "source_takes.npz")[f"{WALK}_joints"].astype(np.float64)  # model axes
+    joints = np.concatenate([joints, joints[::-1]])  # 4 s: there and back again, continuous
+    blender = np.stack([joints[..., 0], -joints[..., 2], joints[..., 1]], axis=-1)  # Z up, facing -Y
+    for joint in drop:  # joints the rig's bone map does not have
+        blender[:, bl._J[joint]] = np.nan
+    return Take(name, blender, 20.0), joints
+
+
+def test_actions_export_as_a_library_that_prepares(fixtures, tmp_path, capsys):
+    from mld_core.data.action_export import Take, export_takes
+    from mld_core.motion.features import canonical_joints
+
+    take, joints = _blender_take(fixtures, drop=())
+    short = Take("Blink", take.joints[:20], 20.0)
+    noname = Take("123", take.joints, 20.0)
+    result = export_takes([take, short, noname, Take("Wave", take.joints, 20.0, ["a person waves\n", " "])],
+                          tmp_path / "lib")
+    assert result["written"] == ["Walk_Tired_001.bvh", "Wave.bvh"]
+    assert "shorter than 2 s" in result["skipped"]["Blink"] and "no caption" in result["skipped"]["123"]
+    rows = (tmp_path / "lib" / "captions.csv").read_text().splitlines()
+    assert rows == ["file,caption", "Walk_Tired_001.bvh,a person walk tired", "Wave.bvh,a person waves"]
+    assert _run(tmp_path / "lib", tmp_path / "out", "--captions", tmp_path / "lib" / "captions.csv") == 0
+    report = {f["file"]: f for f in json.loads((tmp_path / "out" / "prepare_report.json").read_text())["files"]}
+    assert report["Walk_Tired_001.bvh"]["skeleton"] == "canonical"
+    seg = report["Walk_Tired_001.bvh"]["segments"][0]["id"]
+    back = np.load(tmp_path / "out" / "new_joints" / f"{seg}.npy")
+    expected = canonical_joints(joints)[:len(back)]  # two feature extractions: one frame fewer each
+    assert np.abs(back - expected).max() < 0.01  # the take comes back within 1 cm
+    before = sorted(p.name for p in (tmp_path / "lib").iterdir())
+    with pytest.raises(Exception, match="already exists"):
+        export_takes([take], tmp_path / "lib")
+    assert sorted(p.name for p in (tmp_path / "lib").iterdir()) == before
+
+
+def test_joints_a_bone_map_lacks_are_filled_in(fixtures, tmp_path):
+    from mld_core.data.action_export import export_takes
+
+    take, joints = _blender_take(fixtures)  # no spine2, no collars
+    export_takes([take], tmp_path / "lib")
+    assert _run(tmp_path / "lib", tmp_path / "out", "--captions", tmp_path / "lib" / "captions.csv") == 0
+    back = np.load(next((tmp_path / "out" / "new_joints").glob("W*.npy")))
+    legs = [bl._J[n] for n in ("pelvis", "left_knee", "right_knee", "left_ankle", "right_ankle", "left_foot")]
+    from mld_core.motion.features import canonical_joints
+
+    assert np.abs(back[:, legs] - canonical_joints(joints)[:len(back), legs]).max() < 0.02
+    spine2 = back[:, bl._J["spine2"]]
+    between = 0.5 * (back[:, bl._J["spine1"]] + back[:, bl._J["spine3"]])
+    assert np.linalg.norm(spine2 - between, axis=-1).max() < 0.05  # filled halfway up the spine

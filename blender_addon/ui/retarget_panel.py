@@ -7,7 +7,8 @@ marks the joints Generate cannot do without), and ``extras``, a JSON string with
 armature uses the detected map (cached per set of bone names). ``key_takes.bone_map_of(obj)`` reads it.
 
 Operators are adapters over plain functions: ``do_detect(obj)``, ``do_save_map(obj, path)``,
-``do_load_map(obj, path)``, ``do_clear_map(obj)``, each returning ``(level, message)``.
+``do_load_map(obj, path)``, ``do_clear_map(obj)``, ``do_export_actions(obj, folder)``, each returning
+``(level, message)``.
 """
 
 from __future__ import annotations
@@ -196,6 +197,60 @@ class MLD_OT_load_bone_map(bpy.types.Operator, ImportHelper):
         return {"FINISHED"} if level != "ERROR" else {"CANCELLED"}
 
 
+def do_export_actions(obj, folder: str, name_filter: str = "") -> tuple[str, str]:
+    """Every Action that keys ``obj``'s mapped bones (whose name contains ``name_filter``), through the bone map, as
+    BVH files + captions.csv in ``folder`` for ``data prepare bvh``. Captions: the Action's 'mld_caption' property
+    (one per line), else its name in words."""
+    from mld_core.data.action_export import CAPTION_PROPERTY, Take, export_takes
+    from mld_core.inputs import InputError
+
+    from ..scene.action_joints import action_joints, animates
+
+    if not folder:
+        return "ERROR", "Choose a folder to export to"
+    scene = bpy.context.scene
+    bone_map = key_takes.bone_map_of(obj).joints
+    fps = scene.render.fps / (scene.render.fps_base or 1.0)
+    actions = [a for a in bpy.data.actions if name_filter.lower() in a.name.lower() and animates(a, obj, bone_map)]
+    if not actions:
+        return "ERROR", f"No Action keys the mapped bones of {obj.name}" + (f" with '{name_filter}' in its name"
+                                                                            if name_filter else "")
+    takes = [Take(a.name, action_joints(obj, a, scene, bone_map), fps,
+                  str(a.get(CAPTION_PROPERTY, "")).splitlines()) for a in actions]
+    try:
+        result = export_takes(takes, bpy.path.abspath(folder))
+    except InputError as exc:
+        return "ERROR", str(exc)
+    skipped = "; ".join(f"{k}: {v}" for k, v in result["skipped"].items())
+    message = f"Exported {len(result['written'])} Actions to {folder} (captions.csv beside them)"
+    return ("WARNING", f"{message}; skipped {skipped}") if skipped else ("INFO", message)
+
+
+class MLD_OT_export_actions(bpy.types.Operator):
+    """Write the armature's Actions, through its bone map, as BVH files with a captions.csv, ready for
+    'python -m mld_core data prepare bvh FOLDER --captions FOLDER/captions.csv'"""
+
+    bl_idname = "mld.export_actions"
+    bl_label = "Export Actions as Training Data..."
+    bl_options = {"REGISTER"}
+
+    directory: StringProperty(subtype="DIR_PATH")
+    name_filter: StringProperty(name="Name Contains", description="Only Actions whose name contains this text")
+
+    @classmethod
+    def poll(cls, context):
+        return _poll_armature(cls, context)
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        level, message = do_export_actions(_target(context), self.directory, self.name_filter)
+        self.report({level}, message)
+        return {"FINISHED"} if level != "ERROR" else {"CANCELLED"}
+
+
 # -- UI ------------------------------------------------------------------------------------------------------------
 class MLD_UL_bone_map(bpy.types.UIList):
     """Canonical joint -> bone (required joints marked *), the bone picked from the armature's bones."""
@@ -256,6 +311,8 @@ class MLD_PT_retarget(bpy.types.Panel):
             row = layout.row(align=True)
             row.operator("mld.save_bone_map", icon="EXPORT")
             row.operator("mld.load_bone_map", icon="IMPORT")
+        if obj is not None:
+            layout.operator("mld.export_actions", icon="EXPORT")
 
         col = layout.column(align=True)
         row = col.row(align=True)
@@ -278,6 +335,7 @@ classes = (
     MLD_OT_clear_bone_map,
     MLD_OT_save_bone_map,
     MLD_OT_load_bone_map,
+    MLD_OT_export_actions,
     MLD_UL_bone_map,
     MLD_PT_retarget,
 )

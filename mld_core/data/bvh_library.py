@@ -137,12 +137,18 @@ def mapped_joints(bvh, bone_map) -> np.ndarray:
                 out[:, toe] = pos[:, children[0]]
             else:
                 out[:, toe] = out[:, ankle] + np.einsum("fab,b->fa", rot[:, a], tip)
+    fill_missing_joints(out)
+    return out
+
+
+def fill_missing_joints(out: np.ndarray) -> None:
+    """In place on (F, 22, 3) with NaN rows for unmapped joints: spine joints evenly between known ones, a neck
+    between the shoulders, collars halfway from spine3 to the shoulders (the toes must be there already)."""
     _fill_spine(out)
     for side in ("left", "right"):
         collar, shoulder = _J[f"{side}_collar"], _J[f"{side}_shoulder"]
         if np.isnan(out[0, collar, 0]):
             out[:, collar] = 0.5 * (out[:, _J["spine3"]] + out[:, shoulder])
-    return out
 
 
 def _fill_spine(out: np.ndarray) -> None:
