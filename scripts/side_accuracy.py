@@ -92,6 +92,12 @@ PARAPHRASES = {
         "the man takes a deep bow",
         "a woman bows her head and upper body to greet someone",
     ],
+    "jump": [  # not a Bandai content (the CMU fine-tune of docs/library.md); not in DEFAULT_CONTENTS
+        "a person jumps forward",
+        "someone jumps up and down in place",
+        "the man takes a big jump",
+        "a woman hops forward with both feet",
+    ],
     "kick": [
         "someone kicks high with the right leg",
         "a person does a high kick",

@@ -134,7 +134,7 @@ def bow_motion(pose: np.ndarray, degrees: float = 60.0, back_up: bool = True) ->
 def test_standing_still_shows_nothing(rest):
     v = P.verdicts(still(rest))
     assert v == {"raised": "none", "waving": "none", "turn": "none", "locomotion": "stand", "drift": "none",
-                 "bow": False, "kick": "none"}
+                 "bow": False, "kick": "none", "jump": False}
 
 
 def test_raised_right_hand_and_its_mirror(rest):
@@ -410,3 +410,17 @@ def test_side_of_a_wave_is_the_waving_hand_else_the_raised_one(rest):
     assert P.detected_side(r, "wave-left-hand") == "left" and P.detected_side(r, "raise-up-left-hand") == "both"
     only_raised = P.classify(raise_arm(still(rest, 5), "right", a))
     assert P.detected_side(only_raised, "wave-left-hand") == "right"
+
+
+def test_a_jump_leaves_the_floor_with_the_pelvis_rising(rest):
+    j = still(rest, 3.0)
+    t = np.arange(len(j)) / FPS
+    flight = (t >= 1.0) & (t < 1.45)  # 0.45 s in the air, up to 0.25 m
+    height = np.where(flight, 0.25 * np.sin(np.pi * (t - 1.0) / 0.45), 0.0)
+    jumped = j + height[:, None, None] * np.array([0.0, 1.0, 0.0])
+    c = P.jump(jumped)
+    assert c.verdict is True and c.value == pytest.approx(0.35, abs=0.1) and P.passes(jumped, "jump")
+    assert P.jump(j).verdict is False
+    # A running stride's flight: feet off the floor briefly, the pelvis level: no jump.
+    fast = walk(rest, (0.0, 3.0), step_s=0.7, stance=0.35)
+    assert P.locomotion(fast).verdict == "run" and P.jump(fast).verdict is False

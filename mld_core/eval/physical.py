@@ -127,6 +127,12 @@ KICK_MIN_HEIGHT_M = 0.5
 KICK_MIN_FORWARD_M = 0.25
 KICK_HOLD_S = 0.1
 
+# Jump: every foot joint at least JUMP_FEET_M above the floor for at least JUMP_MIN_FLIGHT_S while the pelvis is at
+# least JUMP_RISE_M above its median height (a running stride's flight keeps the pelvis level and lasts 0.1-0.2 s).
+JUMP_FEET_M = 0.05
+JUMP_MIN_FLIGHT_S = 0.15
+JUMP_RISE_M = 0.08
+
 SIDES = ("left", "right")
 
 
@@ -381,6 +387,18 @@ def kick(joints, fps: float = sk.FPS) -> Check:
     return Check(verdict, max(out.values()), {"left_height_m": out["left"], "right_height_m": out["right"]})
 
 
+def jump(joints, fps: float = sk.FPS) -> Check:
+    """A jump: both feet off the floor with the pelvis rising; verdict True/False; value: the longest such flight
+    (s)."""
+    j = _as_joints(joints)
+    feet = j[:, [L_ANKLE, R_ANKLE, L_FOOT, R_FOOT], 1]  # (T, 4)
+    floor = float(np.percentile(feet.min(axis=1), 5))
+    rise = j[:, PELVIS, 1] - float(np.median(j[:, PELVIS, 1]))
+    flying = (feet.min(axis=1) - floor >= JUMP_FEET_M) & (rise >= JUMP_RISE_M)
+    longest = max((b - a for a, b in _runs(flying)), default=0) / fps
+    return Check(longest >= JUMP_MIN_FLIGHT_S, longest, {"max_rise_m": float(rise.max())})
+
+
 CHECKS = {
     "raised": raised_hand,
     "waving": waving,
@@ -389,11 +407,12 @@ CHECKS = {
     "drift": drift,
     "bow": bow,
     "kick": kick,
+    "jump": jump,
 }
 
 
 def classify(joints, fps: float = sk.FPS) -> dict[str, Check]:
-    """Run every check: {"raised", "waving", "turn", "locomotion", "drift", "bow", "kick"} -> Check."""
+    """Run every check: {"raised", "waving", "turn", "locomotion", "drift", "bow", "kick", "jump"} -> Check."""
     j = _as_joints(joints)
     return {name: fn(j, fps) for name, fn in CHECKS.items()}
 
@@ -427,6 +446,7 @@ _EXPECTED = {
     "walk-turn-right": {"locomotion": {"walk"}, "turn": {"right"}},
     "bow": {"bow": {True}},
     "kick": {"kick": {"left", "right", "both"}},
+    "jump": {"jump": {True}},  # not a Bandai content: CMU's jumps (docs/library.md)
 }
 CHECKED_LABELS = tuple(sorted(_EXPECTED))
 
