@@ -21,7 +21,7 @@ Keying a user's rig (retargeted through a bone map, see docs/retarget.md)::
 
     python blender_addon/batch.py --prompts prompts.txt --out takes.blend \
         --rig character.blend --rig-object Armature [--bone-map map.json] \
-        [--reduce] [--tolerance 0.5] [--rotation-mode QUATERNION|XYZ|...|KEEP] [--foot-lock] [--nla]
+        [--reduce] [--tolerance 0.5] [--rotation-mode QUATERNION|XYZ|...|KEEP] [--foot-lock] [--match effectors|directions] [--nla]
     python blender_addon/batch.py --prompt "a person bows" --out bow.blend --bvh-rig skeleton.bvh --bvh-scale 0.01
 
 ``--rig`` appends the objects of a .blend (the armature and its meshes); ``--bvh-rig`` imports a BVH file with
@@ -112,6 +112,9 @@ def build_parser() -> argparse.ArgumentParser:
     rt.add_argument("--rotation-mode", default="QUATERNION", type=str.upper,
                     help="QUATERNION (default), an Euler order (XYZ, XZY, YXZ, YZX, ZXY, ZYX) or KEEP (each bone's own)")
     rt.add_argument("--foot-lock", action="store_true", help="hold feet in place while in contact")
+    rt.add_argument("--match", choices=("effectors", "directions"), default="effectors",
+                    help="effectors (default): hands and feet land where the take puts them; directions: every limb "
+                    "points as in the take, feet may sink")
     rt.add_argument("--nla", action="store_true", help="put each take on its own NLA track instead of assigning it")
     return parser
 
@@ -123,7 +126,7 @@ def retarget_inputs(args, addon):
     try:
         settings = wiring.RetargetSettings(
             reduce=args.reduce, tolerance_deg=args.tolerance, rotation_mode=args.rotation_mode,
-            foot_lock=args.foot_lock, nla=args.nla,
+            foot_lock=args.foot_lock, nla=args.nla, match=args.match,
         )
     except ValueError as exc:
         raise BatchError(str(exc)) from None

@@ -31,7 +31,8 @@ def test_options_map_onto_bake_options():
         24.0, 7.0, "ZXY", True, 1.5, True)
     assert bake.interpolation == "BEZIER" and bake.loc_tolerance == ke.BakeOptions().loc_tolerance
     assert opts.rotation_modes({"a": "XYZ"}, ["a"]) is None  # one mode for every bone
-    assert opts.to_dict() == {"reduce": True, "tolerance_deg": 1.5, "rotation_mode": "ZXY", "foot_lock": True, "nla": True}
+    assert opts.to_dict() == {"reduce": True, "tolerance_deg": 1.5, "rotation_mode": "ZXY", "foot_lock": True,
+                              "nla": True, "match": "effectors"}
     default = rw.RetargetSettings().bake_options(30, 1)
     assert default.reduce is False and default.rotation_mode == "QUATERNION" and default.foot_lock is False
 
@@ -213,3 +214,26 @@ def test_batch_arguments_are_checked_before_any_work(tmp_path):
     for extra, words in cases:
         with pytest.raises(batch.BatchError, match=words):
             inputs(*extra)
+
+
+def test_the_match_mode_reaches_the_retarget(fixtures):
+    from types import SimpleNamespace
+
+    with pytest.raises(ValueError, match="match must be one of"):
+        rw.RetargetSettings(match="elbows")
+    assert rw.RetargetSettings.from_settings(SimpleNamespace(match="DIRECTIONS")).match == "directions"
+    stored = np.load(fixtures / "rigs" / "source_takes.npz")
+    joints = stored["dataset-2_wave-right-hand_normal_026_joints"].astype(np.float64)
+    rig = rt.RigRest.load(fixtures / "rigs" / "rigify_metarig.json")
+    bmap = bm.detect_bone_map(rig.names, rig.parents).bone_map
+    take = rw.Take(joints=joints, local_quats=None, contacts=None, fps=20.0)
+    keys = {m: rw.take_keys(take, rig, bmap, rw.RetargetSettings(match=m), fps=20.0, frame_start=1.0)
+            for m in rw.MATCH_IDS}
+    ref = {m: ke.take_to_keys(joints, rig, bmap, retarget_options=rt.RetargetOptions(match=m),
+                              bake_options=rw.RetargetSettings().bake_options(20.0, 1.0))[0] for m in rw.MATCH_IDS}
+    def values(baked):
+        return np.concatenate([c.values for c in baked.curves if "rotation" in c.data_path])
+
+    for m in rw.MATCH_IDS:
+        np.testing.assert_array_equal(values(keys[m]), values(ref[m]))
+    assert not np.allclose(values(keys["effectors"]), values(keys["directions"]))

@@ -6,7 +6,7 @@ import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty,
                        StringProperty)
 
-from mld_core.rig.keying import DEFAULT_TOLERANCE_DEG, ROTATION_CHOICES
+from mld_core.rig.keying import DEFAULT_TOLERANCE_DEG, MATCH_CHOICES, ROTATION_CHOICES
 
 from . import quality_panel
 from ..worker.validation import MAX_STEPS, MAX_VARIANTS, SEED_MAX, model_limits
@@ -127,6 +127,12 @@ class MLD_SceneSettings(bpy.types.PropertyGroup):
         description="Rotation channels to key",
         items=list(ROTATION_CHOICES),
         default="QUATERNION",
+    )
+    match: EnumProperty(
+        name="Match",
+        description="What the keyed rig keeps of the take when its proportions differ",
+        items=list(MATCH_CHOICES),
+        default="EFFECTORS",
     )
     foot_lock: BoolProperty(
         name="Foot Lock",

@@ -321,6 +321,7 @@ class MLD_PT_retarget(bpy.types.Panel):
         sub.enabled = settings.reduce_keys
         sub.prop(settings, "reduce_tolerance", text="Tol.")
         col.prop(settings, "rotation_mode")
+        col.prop(settings, "match")
         row = col.row(align=True)
         row.prop(settings, "foot_lock", toggle=True)
         row.prop(settings, "push_nla", toggle=True)

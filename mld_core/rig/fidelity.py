@@ -28,6 +28,17 @@ def facing_yaw(left: np.ndarray, right: np.ndarray) -> np.ndarray:
     return np.unwrap(yaw)
 
 
+LIMB_BONES = tuple((child, parent) for side in ("left", "right") for parent, child in (
+    (f"{side}_shoulder", f"{side}_elbow"), (f"{side}_elbow", f"{side}_wrist"),
+    (f"{side}_hip", f"{side}_knee"), (f"{side}_knee", f"{side}_ankle")))
+
+
+def _direction_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle (T,) in degrees between two (T, 3) direction series."""
+    cos = (a * b).sum(-1) / np.maximum(np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1), _EPS)
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
 def fidelity(result: RetargetResult, target_joints: Mapping[str, np.ndarray] | None = None) -> dict:
     """Compare the rig's FK with the placed source (both world space, source scaled by ``result.scale``).
 
@@ -38,7 +49,8 @@ def fidelity(result: RetargetResult, target_joints: Mapping[str, np.ndarray] | N
     the same joint of the placed source while that joint is down at the floor; ``below_rest_height_cm`` (rigs
     whose rest stands) the most a foot joint goes below its rest height above the floor. Direction: heading error
     from the hips' lateral axis (mean, degrees), total turn of source and rig, and the angle between their net
-    travel directions.
+    travel directions. Limbs: ``limb_dir_deg``, the mean angle between the rig's upper arm, forearm, thigh and shin
+    and the source's (the worst bone's mean in ``limb_dir_deg_max_bone``).
     ``target_joints`` (joint -> (T, 3) world positions) replaces the rig's FK, e.g. with Blender's own evaluation.
     """
     wj = result.world_joints() if target_joints is None else target_joints
@@ -65,6 +77,11 @@ def fidelity(result: RetargetResult, target_joints: Mapping[str, np.ndarray] | N
         errors_global.append(glob.mean())
     out["effector_err_mean"] = float(np.mean(errors))
     out["effector_err_global_mean"] = float(np.mean(errors_global))
+    angles = [_direction_error_deg(wj[a] - wj[b], src[:, J[a]] - src[:, J[b]])
+              for a, b in LIMB_BONES if a in wj and b in wj]
+    if angles:  # how far each limb bone points from the source's: the pose as an animator reads it
+        out["limb_dir_deg"] = float(np.mean([a.mean() for a in angles]))
+        out["limb_dir_deg_max_bone"] = float(max(a.mean() for a in angles))
     feet = [j for j in FOOT_JOINTS if j in wj]
     standing = standing_heights(result.rig, dict(zip(result.joints, result.bones)))
     floor = result.rig.object_matrix[2, 3]

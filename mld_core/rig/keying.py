@@ -19,7 +19,7 @@ import numpy as np
 from mld_core.rig import bone_maps as bm
 from mld_core.rig import canonical_pose
 from mld_core.rig import keyframes as ke
-from mld_core.rig.retarget import RigRest
+from mld_core.rig.retarget import RetargetOptions, RigRest
 
 # (identifier, label, description) for the panel's Rotation menu; "KEEP" keeps each bone's current mode.
 ROTATION_CHOICES = (
@@ -35,6 +35,15 @@ ROTATION_CHOICES = (
 ROTATION_IDS = tuple(c[0] for c in ROTATION_CHOICES)
 DEFAULT_TOLERANCE_DEG = 0.5
 
+# (identifier, label, description) for the panel's Match menu and the batch's --match (lower case there).
+MATCH_CHOICES = (
+    ("EFFECTORS", "Hands and Feet", "Hands and feet land where the take puts them, scaled to the rig's limbs; "
+     "limbs point within a few degrees of the take's (the default: feet never sink)"),
+    ("DIRECTIONS", "Limb Directions", "Every limb points exactly as in the take; hands and feet land where the "
+     "rig's own proportions take them, and feet may sink a few centimetres"),
+)
+MATCH_IDS = tuple(c[0].lower() for c in MATCH_CHOICES)
+
 
 @dataclass(frozen=True)
 class RetargetSettings:
@@ -45,8 +54,11 @@ class RetargetSettings:
     rotation_mode: str = "QUATERNION"
     foot_lock: bool = False
     nla: bool = False
+    match: str = "effectors"  # retarget.RetargetOptions.match: "effectors" (hands and feet land) or "directions"
 
     def __post_init__(self) -> None:
+        if self.match not in MATCH_IDS:
+            raise ValueError(f"match must be one of {', '.join(MATCH_IDS)}; got {self.match!r}")
         if self.rotation_mode not in ROTATION_IDS:
             raise ValueError(f"rotation mode must be one of {', '.join(ROTATION_IDS)}; got {self.rotation_mode!r}")
         if not (0.0 < float(self.tolerance_deg) <= 45.0):
@@ -61,6 +73,7 @@ class RetargetSettings:
             rotation_mode=str(getattr(settings, "rotation_mode", "QUATERNION")),
             foot_lock=bool(getattr(settings, "foot_lock", False)),
             nla=bool(getattr(settings, "push_nla", False)),
+            match=str(getattr(settings, "match", "EFFECTORS")).lower(),
         )
 
     def bake_options(self, fps: float, frame_start: float) -> ke.BakeOptions:
@@ -94,6 +107,7 @@ class RetargetSettings:
             "rotation_mode": self.rotation_mode,
             "foot_lock": self.foot_lock,
             "nla": self.nla,
+            "match": self.match,
         }
 
 
@@ -223,7 +237,8 @@ def take_keys(take: Take, rig: RigRest, bone_map: bm.BoneMap, settings: Retarget
     if settings.foot_lock and take.contacts is None:
         raise ValueError("Foot Lock needs a take of at least 2 frames; nothing was keyed")
     per_bone = settings.rotation_modes(current_modes or {}, bone_map.joints.values())
-    baked, _ = ke.take_to_keys(take.joints, rig, bone_map, bake_options=settings.bake_options(fps, frame_start),
+    baked, _ = ke.take_to_keys(take.joints, rig, bone_map, retarget_options=RetargetOptions(match=settings.match),
+                               bake_options=settings.bake_options(fps, frame_start),
                                contacts=take.contacts if settings.foot_lock else None, rotation_modes=per_bone,
                                fps=take.fps)
     return baked
