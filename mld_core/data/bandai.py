@@ -393,6 +393,20 @@ def _license(original: str | None) -> str:
     return head
 
 
+def swap_into_place(tmp: Path, out: Path) -> None:
+    """Rename the finished folder ``tmp`` to ``out``; a previous output there (ours: checked again) is removed only
+    after the rename."""
+    check_out(out)
+    old = None
+    if out.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+        os.rmdir(old)
+        os.replace(out, old)
+    os.replace(tmp, out)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
 def prepare_bandai(src, out, *, workers: int = 2, mirror: bool = True, progress: bool = True,
                    limit: int | None = None) -> dict:
     """Build the HumanML3D-format folder ``out`` from the Bandai source ``src``; returns a summary dict.
@@ -515,16 +529,7 @@ def prepare_bandai(src, out, *, workers: int = 2, mirror: bool = True, progress:
         manifest = {**summary, "files": written_files(tmp)}  # what a rerun may replace, and nothing else
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
 
-        # Swap into place: the previous output (ours, checked again) is removed only after the rename.
-        check_out(out)
-        old = None
-        if out.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
-            os.rmdir(old)
-            os.replace(out, old)
-        os.replace(tmp, out)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        swap_into_place(tmp, out)
         summary["out"] = str(out)
         return summary
     finally:

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import re
 import shutil
 import sys
@@ -24,7 +23,7 @@ import numpy as np
 
 from mld_core.data import captions as cap
 from mld_core.data.bandai import (FORMAT_VERSION, MANIFEST, TARGET_FPS, PrepareError, _write_clip, assign_splits,
-                                  check_out, resample_joints, source_fps, written_files)
+                                  check_out, resample_joints, source_fps, swap_into_place, written_files)
 from mld_core.motion.bvh import BVHError, read_bvh
 from mld_core.motion.skeleton import JOINT_NAMES
 
@@ -370,15 +369,7 @@ def prepare_bvh(src, out, options: LibraryOptions | None = None) -> dict:
         (tmp / "README.md").write_text(_readme(src, summary), encoding="utf-8")
         (tmp / MANIFEST).write_text(json.dumps({**summary, "files": written_files(tmp) + [MANIFEST]}, indent=1) +
                                     "\n", encoding="utf-8")
-        check_out(out)
-        old = None
-        if out.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
-            os.rmdir(old)
-            os.replace(out, old)
-        os.replace(tmp, out)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        swap_into_place(tmp, out)
         for file, why in sorted(skipped.items()):
             print(f"warning: skipped {file}: {why}", file=sys.stderr)
         return {**summary, "out": str(out)}
