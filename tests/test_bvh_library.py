@@ -79,6 +79,12 @@ def test_bad_input_is_one_line_and_writes_nothing(library, tmp_path, capsys):
     prepare = ["data", "prepare", "bvh"]
     refused(prepare + [library, "--out", out, "--captions", bad], tmp_path, capsys, "must be numbers")
     refused(prepare + [library, "--out", out, "--units", "furlongs"], tmp_path, capsys, "--units must be")
+    refused(prepare + [library, "--out", out, "--units", "inf"], tmp_path, capsys, "--units must be")
+    refused(prepare + [library, "--out", out, "--captions", tmp_path / "none.csv"], tmp_path, capsys,
+            "cannot read --captions")
+    refused(prepare + [library, "--out", out, "--captions", library], tmp_path, capsys, "cannot read --captions")
+    refused(prepare + [library, "--out", out, "--bone-map", tmp_path / "none.json", "--caption-template", "x {name}"],
+            tmp_path, capsys, "cannot use --bone-map")
     refused(prepare + [library / "walks", "--out", out], tmp_path, capsys, "no caption")
     refused(prepare + [library, "--out", library / "inside", "--caption-template", "x {name}"], tmp_path, capsys,
             "must not be inside")

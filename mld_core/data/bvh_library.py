@@ -62,7 +62,10 @@ class Caption:
 def read_caption_table(path: Path) -> dict[str, list[Caption]]:
     """A CSV or TSV of ``file, caption[, start_s, end_s]`` rows (a header row is allowed): key -> captions, keyed by
     the file's path as written, its name and its stem (lower case)."""
-    text = Path(path).read_text(encoding="utf-8-sig")
+    try:
+        text = Path(path).read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise PrepareError(f"cannot read --captions {path}: {getattr(exc, 'strerror', None) or exc}") from None
     dialect = "excel-tab" if text.strip() and "\t" in text.splitlines()[0] else "excel"
     table: dict[str, list[Caption]] = {}
     for n, row in enumerate(csv.reader(text.splitlines(), dialect=dialect), start=1):
@@ -318,11 +321,19 @@ def prepare_bvh(src, out, options: LibraryOptions | None = None) -> dict:
         raise PrepareError("--up must be y or z")
     if options.units is not None and options.units not in UNITS:
         try:
-            if not float(options.units) > 0:
+            if not 0 < float(options.units) < float("inf"):
                 raise ValueError
         except ValueError:
             raise PrepareError(f"--units must be one of {', '.join(UNITS)} or metres per unit (> 0)") from None
     table = read_caption_table(options.captions) if options.captions else None
+    if options.bone_map is not None:
+        from mld_core.rig.bone_maps import BoneMap, BoneMapError
+
+        try:
+            BoneMap.load(options.bone_map)
+        except (OSError, ValueError, BoneMapError) as exc:
+            raise PrepareError(f"cannot use --bone-map {options.bone_map}: "
+                               f"{getattr(exc, 'strerror', None) or str(exc).splitlines()[0]}") from None
     files = find_bvh(src)
     if not files:
         raise PrepareError(f"no .bvh files under {src}")
