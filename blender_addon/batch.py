@@ -311,18 +311,9 @@ def save_blend_copy(tmp: str) -> None:
 
 def write_bvh(path: Path, take) -> None:
     """One take as BVH on the canonical skeleton, in centimetres (mld_core's writer renames atomically)."""
-    import numpy as np
-    from mld_core.motion import bvh, skeleton
+    from mld_core.motion.bvh import write_canonical_bvh
 
-    bvh.write_bvh(
-        path,
-        list(skeleton.JOINT_NAMES),
-        list(skeleton.PARENTS),
-        np.asarray(skeleton.REST_OFFSETS) * 100.0,
-        np.asarray(take.root_positions) * 100.0,
-        np.asarray(take.local_quats),
-        1.0 / take.fps,
-    )
+    write_canonical_bvh(path, take.root_positions, take.local_quats, 1.0 / take.fps, units_per_metre=100.0)
 
 
 def _prepare_scene(args, addon):

@@ -46,8 +46,7 @@ def bvh_paths(path: Path, n: int) -> list[Path]:
 
 def write_bvhs(path: Path, out, fps: int, outputs: OutputSet) -> list[Path]:
     """The canonical skeleton with its rotations, one file per generated row, staged in ``outputs``."""
-    from mld_core.motion import skeleton
-    from mld_core.motion.bvh import write_bvh
+    from mld_core.motion.bvh import write_canonical_bvh
     from mld_core.motion.quaternion import resample_quaternions
     from mld_core.motion.rotations import features_to_rotations
 
@@ -57,8 +56,7 @@ def write_bvhs(path: Path, out, fps: int, outputs: OutputSet) -> list[Path]:
         quats, root = features_to_rotations(out.features[i, :n])
         if fps != out.fps:
             quats, root = resample_quaternions(quats, root, out.fps, fps)
-        outputs.stage(p, lambda tmp: write_bvh(tmp, list(skeleton.JOINT_NAMES), list(skeleton.PARENTS),
-                                              np.asarray(skeleton.REST_OFFSETS), root, quats, 1.0 / fps))
+        outputs.stage(p, lambda tmp: write_canonical_bvh(tmp, root, quats, 1.0 / fps))
     return paths
 
 

@@ -325,7 +325,7 @@ class MLDPipeline:
         # 5b. Repairs of free takes: one skeleton, planted feet (constraints already place the root and joints).
         if repair and not constraints:
             t0 = time.perf_counter()
-            features = self.repair(features, lengths.tolist())
+            features = self.repair_rows(features, lengths.tolist())
             timings["repair_s"] = time.perf_counter() - t0
 
         # 6. Joints from the features.
@@ -372,14 +372,14 @@ class MLDPipeline:
             seam = (1 - w) * features[-overlap:] + w * new[:overlap]
             features = np.concatenate([features[:-overlap], seam, new[overlap:]])  # (T, F)
         if repair:
-            features = self.repair(features[None], [len(features)])[0]
+            features = self.repair_rows(features[None], [len(features)])[0]
         joints = self.joints_from_features(features[None], [len(features)])
         timings = {"segments": starts, "total_s": time.perf_counter() - t_start}
         return MLDOutput(features[None].astype(np.float32), joints, np.array([len(features)]),
                          [" | ".join(p for p, _ in segments)], [seed], self.config.fps, self.model_id, timings,
                          residuals=[residuals])
 
-    def repair(self, features: np.ndarray, lengths: list) -> np.ndarray:
+    def repair_rows(self, features: np.ndarray, lengths: list) -> np.ndarray:
         """Each row's first ``lengths[i]`` frames with the config's repairs applied (a copy; 263-d features only)."""
         cfg = self.config.repair
         if features.shape[-1] != 263 or not (cfg.bone_lengths or cfg.plant_feet):

@@ -19,10 +19,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mld_core.data import bvh_library as bl  # noqa: E402
-from mld_core.data.bandai import resample_joints, source_fps  # noqa: E402
 from mld_core.motion.bvh import read_bvh  # noqa: E402
 from mld_core.motion.features import canonical_joints, features_to_joints, joints_to_features  # noqa: E402
-from mld_core.rig.bone_maps import detect_bone_map  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -32,13 +30,10 @@ def main(argv=None) -> int:
     errors = defaultdict(list)
     for path in bl.find_bvh(args.src):
         bvh = read_bvh(path)
-        found = detect_bone_map(bvh.names, list(bvh.parents))
-        if found.missing:
-            continue
-        joints = bl.mapped_joints(bvh, found.bone_map)
-        joints = bl.to_y_up(joints, bl.detect_up(joints)) * bl.detect_units(joints)[1]
-        fps = source_fps(bvh.frame_time)
-        joints = resample_joints(joints[bl.leading_tpose_frames(joints, int(fps)):], fps, 20)
+        try:
+            joints, _ = bl.library_joints(bvh, bl.skeleton_map(bvh), bl.LibraryOptions())
+        except bl.PrepareError:
+            continue  # a skeleton that does not map
         if len(joints) < 3:
             continue
         target = canonical_joints(joints)[:-1]  # (T-1, 22, 3): what the features describe

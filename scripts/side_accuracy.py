@@ -37,6 +37,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from mld_core.eval import physical  # noqa: E402
+from mld_core.eval.quality import foot_skating_ratio  # noqa: E402
 from mld_core.motion.features import mirror_text  # noqa: E402
 
 SIDED = ("raise-up-left-hand", "raise-up-right-hand", "raise-up-both-hands", "wave-left-hand", "wave-right-hand",
@@ -213,8 +214,6 @@ class Tally:
         self.failed = defaultdict(int)
 
     def add(self, joints: np.ndarray, content: str, fps: float) -> None:
-        from mld_core.eval.quality import foot_skating_ratio
-
         self.skating += foot_skating_ratio(joints, fps)
         result = physical.classify(joints, fps)
         failed = physical.failed_checks(joints, content, result, fps)

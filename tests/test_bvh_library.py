@@ -185,6 +185,9 @@ def test_actions_export_as_a_library_that_prepares(fixtures, tmp_path, capsys):
     back = np.load(tmp_path / "out" / "new_joints" / f"{seg}.npy")
     expected = canonical_joints(joints)[:len(back)]  # two feature extractions: one frame fewer each
     assert np.abs(back - expected).max() < 0.01  # the take comes back within 1 cm
+    (tmp_path / "a_file").write_text("x")
+    with pytest.raises(Exception, match="is a file"):
+        export_takes([take], tmp_path / "a_file")
     before = sorted(p.name for p in (tmp_path / "lib").iterdir())
     with pytest.raises(Exception, match="already exists"):
         export_takes([take], tmp_path / "lib")

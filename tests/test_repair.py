@@ -105,7 +105,7 @@ def test_pipeline_repairs_free_takes_only_when_asked(tmp_path):
     on = pipe(["a walk", "a wave"], 2.5, seed=[1, 2], num_inference_steps=2)
     off = pipe(["a walk", "a wave"], 2.5, seed=[1, 2], num_inference_steps=2, repair=False)
     assert not np.allclose(on.features, off.features)
-    np.testing.assert_allclose(on.features, pipe.repair(off.features, off.lengths.tolist()), atol=1e-5)
+    np.testing.assert_allclose(on.features, pipe.repair_rows(off.features, off.lengths.tolist()), atol=1e-5)
     single = pipe("a wave", 2.5, seed=2, num_inference_steps=2)
     np.testing.assert_allclose(single.features[0], on.features[1], atol=1e-5)  # batch equals single runs
     pipe.config.repair = RepairConfig(bone_lengths=False, plant_feet=False)

@@ -132,3 +132,26 @@ def test_vae_fine_tunes_from_a_model_folder(tmp_path, capsys):
     assert main(["train", "vae", "--data", str(data), "--out", str(tmp_path / "run2"), "--init",
                  str(tmp_path / "nowhere")]) == 2
     assert "is not a model folder" in capsys.readouterr().err and not (tmp_path / "run2").exists()
+
+
+def test_geometric_terms_are_switches_that_train(folder, tmp_path):
+    import torch
+
+    from mld_core.training.vae import GeometricLoss, VAETrainConfig
+
+    mean, std = np.load(folder / "Mean.npy").astype(np.float32), np.load(folder / "Std.npy").astype(np.float32)
+    assert not GeometricLoss(VAETrainConfig(), mean, std)  # off by default
+    x = torch.from_numpy(((joints_to_features(_walk(40, 0.8, 0.3)) - mean) / std)[None].astype(np.float32))
+    loss, parts = GeometricLoss(VAETrainConfig(bone_weight=1.0), mean, std)(x, x)
+    assert float(loss) == 0.0 and parts["geo_joints"] == 0.0  # a perfect reconstruction costs nothing
+    worse = x.clone()
+    worse[..., 4:67] *= 1.05  # every root-relative joint 5% farther out: bones stretch
+    loss, parts = GeometricLoss(VAETrainConfig(bone_weight=1.0), mean, std)(worse, x)
+    assert float(loss) > 0 and float(loss) == pytest.approx(parts["geo_bones"])
+    cfg = tmp_path / "vae.json"
+    cfg.write_text(json.dumps({**TINY_VAE, "val_every": 10, "contact_weight": 1.0, "bone_weight": 1.0}))
+    run = tmp_path / "geo"
+    assert main(["train", "vae", "--data", str(folder), "--out", str(run), "--steps", "10", "--threads", "1",
+                 "--config", str(cfg)]) == 0
+    record = json.loads((run / "log.jsonl").read_text().splitlines()[-1])
+    assert {"geo_contact", "geo_bones", "val_global_mpjpe_mm"} <= set(record)

@@ -16,9 +16,11 @@ from pathlib import Path
 import numpy as np
 
 from mld_core.data.bandai import resample_joints
-from mld_core.data.bvh_library import _J, fill_missing_joints
+from mld_core.data.bvh_library import fill_missing_joints
 from mld_core.fileio import OutputSet
 from mld_core.inputs import InputError
+from mld_core.motion.skeleton import JOINT_NAMES
+from mld_core.rig.bone_maps import REQUIRED_JOINTS
 
 CAPTION_PROPERTY = "mld_caption"  # an Action's custom property with its caption(s), one per line
 
@@ -55,15 +57,13 @@ def file_name(name: str, taken: set) -> str:
 
 def take_bvh(joints_model: np.ndarray, fps: float):
     """(T, 22, 3) model-axis joints at ``fps`` -> a BVH writer for the canonical skeleton at 20 fps."""
-    from mld_core.motion import skeleton
-    from mld_core.motion.bvh import write_bvh
+    from mld_core.motion.bvh import write_canonical_bvh
     from mld_core.motion.features import joints_to_features
     from mld_core.motion.rotations import features_to_rotations
 
     joints = resample_joints(joints_model, fps, 20.0)
     quats, root = features_to_rotations(joints_to_features(joints))
-    return lambda tmp: write_bvh(tmp, list(skeleton.JOINT_NAMES), list(skeleton.PARENTS),
-                                 np.asarray(skeleton.REST_OFFSETS), root, quats, 1.0 / 20.0)
+    return lambda tmp: write_canonical_bvh(tmp, root, quats, 1.0 / 20.0)
 
 
 def export_takes(takes: list[Take], folder, *, overwrite: bool = False) -> dict:
@@ -109,8 +109,6 @@ def _unusable(take: Take) -> str:
         return f"joints must be (T, 22, 3), got {j.shape}"
     if len(j) / take.fps < 2:
         return f"shorter than 2 s ({len(j)} frames at {take.fps:g} fps)"
-    required = ["pelvis", "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
-                "left_foot", "right_foot", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
-                "left_wrist", "right_wrist", "head"]
-    missing = [n for n in required if not np.isfinite(j[:, _J[n]]).all()]
+    required = (*REQUIRED_JOINTS, "left_foot", "right_foot")  # the toes are not filled in
+    missing = [n for n in required if not np.isfinite(j[:, JOINT_NAMES.index(n)]).all()]
     return f"the bone map has no {', '.join(missing)}" if missing else ""

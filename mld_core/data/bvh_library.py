@@ -95,7 +95,7 @@ def _words(name: str) -> str:
     return re.sub(r"\s+", " ", re.sub(r"\d+", " ", text)).strip().lower()
 
 
-def captions_for(path: Path, src: Path, table: dict | None, template: str | None) -> list[Caption]:
+def file_captions(path: Path, src: Path, table: dict | None, template: str | None) -> list[Caption]:
     """The file's captions: rows of the table, else a .txt beside it (one caption per line), else the template."""
     if table:
         rel = path.relative_to(src).as_posix().lower()
@@ -244,49 +244,63 @@ def clip_id(path: Path, src: Path) -> str:
     return re.sub(r"[^A-Za-z0-9_-]+", "_", rel.replace("/", "__"))
 
 
-def process_file(path: Path, src: Path, options: LibraryOptions, table: dict | None, root: Path) -> dict:
+def skeleton_map(bvh, given=None):
+    """The bone map for a parsed BVH: ``given`` (checked against its joints), else the detected one."""
+    from mld_core.rig.bone_maps import detect_bone_map
+
+    if given is not None:
+        given.validate(bvh.names)
+        return given
+    detection = detect_bone_map(bvh.names, list(bvh.parents))
+    if detection.missing:
+        raise PrepareError(f"cannot map the skeleton: no {', '.join(detection.missing)} found "
+                           "(save a bone map and pass --bone-map)")
+    return detection.bone_map
+
+
+def library_joints(bvh, bone_map, options: LibraryOptions) -> tuple[np.ndarray, dict]:
+    """A parsed BVH as the 22 joints (T, 22, 3) in metres, Y up, at 20 fps without its leading T-pose frames, and
+    what was found on the way (units, up axis, source frame rate, trimmed frames)."""
+    joints = mapped_joints(bvh, bone_map)
+    up = options.up or detect_up(joints)
+    joints = to_y_up(joints, up)
+    if options.units in UNITS:
+        units, scale = options.units, UNITS[options.units]
+    elif options.units:
+        units, scale = f"{float(options.units):g} m", float(options.units)
+    else:
+        units, scale = detect_units(joints)
+    joints = joints * scale
+    fps = source_fps(bvh.frame_time)
+    trimmed = leading_tpose_frames(joints, int(fps))
+    info = {"units": units, "up": up, "fps": round(fps, 3), "tpose_frames_trimmed": trimmed}
+    return resample_joints(joints[trimmed:], fps, TARGET_FPS), info
+
+
+def process_file(path: Path, src: Path, options: LibraryOptions, table: dict | None, root: Path,
+                 bone_map=None) -> dict:
     """One BVH -> its segments' files under ``root``; returns a report entry (``error`` when skipped)."""
     from mld_core.motion import features as F
-    from mld_core.rig.bone_maps import BoneMap, detect_bone_map
 
-    rel = path.relative_to(src).as_posix()
-    entry = {"file": rel}
+    entry = {"file": path.relative_to(src).as_posix()}
     try:
-        texts = captions_for(path, src, table, options.caption_template)
+        texts = file_captions(path, src, table, options.caption_template)
         if not texts:
             raise PrepareError("no caption (none in --captions, no .txt beside it, no --caption-template)")
         bvh = read_bvh(path)
-        if options.bone_map is not None:
-            bmap = BoneMap.load(options.bone_map)
-            bmap.validate(bvh.names)
-        else:
-            detection = detect_bone_map(bvh.names, list(bvh.parents))
-            if detection.missing:
-                raise PrepareError(f"cannot map the skeleton: no {', '.join(detection.missing)} found "
-                                   "(save a bone map and pass --bone-map)")
-            bmap = detection.bone_map
-        joints = mapped_joints(bvh, bmap)
-        up = options.up or detect_up(joints)
-        joints = to_y_up(joints, up)
-        units, scale = (options.units, UNITS[options.units]) if options.units in UNITS else \
-            ((f"{float(options.units):g} m", float(options.units)) if options.units else detect_units(joints))
-        joints = joints * scale
-        fps = source_fps(bvh.frame_time)
-        trimmed = leading_tpose_frames(joints, int(fps))
-        joints = resample_joints(joints[trimmed:], fps, TARGET_FPS)
-        entry.update(skeleton=bmap.source, root=bvh.names[0], units=units, up=up, fps=round(fps, 3),
-                     tpose_frames_trimmed=trimmed, seconds=round(len(joints) / TARGET_FPS, 2), segments=[])
+        bmap = skeleton_map(bvh, bone_map)
+        joints, info = library_joints(bvh, bmap, options)
+        entry.update(skeleton=bmap.source, root=bvh.names[0], **info,
+                     seconds=round(len(joints) / TARGET_FPS, 2))
     except (BVHError, PrepareError, KeyError, ValueError, OSError) as exc:
         return {**entry, "error": str(exc).splitlines()[0] if str(exc) else type(exc).__name__}
     base = clip_id(path, src)
+    by_span: dict[str, dict] = {}  # two captions of one span make one segment
     for c in texts:
         for a, b in segments(len(joints), c, TARGET_FPS, options.min_seconds, options.max_seconds):
             cid = f"{base}_{a:05d}_{b:05d}"
-            if any(s["id"] == cid for s in entry["segments"]):  # two captions of one span: one segment
-                seg = next(s for s in entry["segments"] if s["id"] == cid)
-                seg["captions"].append(c.text)
-                continue
-            entry["segments"].append({"id": cid, "start": a, "end": b, "captions": [c.text]})
+            by_span.setdefault(cid, {"id": cid, "start": a, "end": b, "captions": []})["captions"].append(c.text)
+    entry["segments"] = list(by_span.values())
     if not entry["segments"]:
         return {**entry, "error": f"shorter than {options.min_seconds:g} s after trimming"}
     try:
@@ -326,11 +340,12 @@ def prepare_bvh(src, out, options: LibraryOptions | None = None) -> dict:
         except ValueError:
             raise PrepareError(f"--units must be one of {', '.join(UNITS)} or metres per unit (> 0)") from None
     table = read_caption_table(options.captions) if options.captions else None
+    bone_map = None
     if options.bone_map is not None:
         from mld_core.rig.bone_maps import BoneMap, BoneMapError
 
         try:
-            BoneMap.load(options.bone_map)
+            bone_map = BoneMap.load(options.bone_map)
         except (OSError, ValueError, BoneMapError) as exc:
             raise PrepareError(f"cannot use --bone-map {options.bone_map}: "
                                f"{getattr(exc, 'strerror', None) or str(exc).splitlines()[0]}") from None
@@ -345,16 +360,18 @@ def prepare_bvh(src, out, options: LibraryOptions | None = None) -> dict:
     try:
         for sub in ("new_joint_vecs", "new_joints", "texts"):
             (tmp / sub).mkdir()
-        report = [process_file(p, src, options, table, tmp) for p in files]
+        report = [process_file(p, src, options, table, tmp, bone_map) for p in files]
         ok = [r for r in report if "error" not in r]
         if not ok:
             raise PrepareError(f"no usable clips in {src}: e.g. {report[0]['file']}: {report[0]['error']}")
-        labels = {s["id"]: (Path(r["file"]).parent.as_posix() or ".", "") for r in ok for s in r["segments"]}
-        by_file = assign_splits({r["file"]: (Path(r["file"]).parent.as_posix() or ".", "") for r in ok})
-        splits = {"train": [], "val": [], "test": []}
-        for r in ok:  # a file's segments (and mirrors) share its split
+        folder_of = {r["file"]: Path(r["file"]).parent.as_posix() for r in ok}
+        by_file = assign_splits({f: (folder, "") for f, folder in folder_of.items()})
+        splits, content = {"train": [], "val": [], "test": []}, {}
+        for r in ok:  # a file's segments (and mirrors) share its split and are labelled with its folder
             for s in r["segments"]:
-                splits[by_file[r["file"]]] += [s["id"]] + (["M" + s["id"]] if options.mirror else [])
+                ids = [s["id"]] + (["M" + s["id"]] if options.mirror else [])
+                splits[by_file[r["file"]]] += ids
+                content.update(dict.fromkeys(ids, folder_of[r["file"]]))
         for name, ids in splits.items():
             (tmp / f"{name}.txt").write_text("".join(f"{i}\n" for i in sorted(ids)), encoding="utf-8")
         all_ids = sorted(i for ids in splits.values() for i in ids)
@@ -365,14 +382,14 @@ def prepare_bvh(src, out, options: LibraryOptions | None = None) -> dict:
         mean, std = F.mean_std(train)
         np.save(tmp / "Mean.npy", np.asarray(mean, np.float32))
         np.save(tmp / "Std.npy", np.asarray(std, np.float32))
-        content = {cid: labels[cid[1:] if cid not in labels else cid][0] for cid in all_ids}
         actions = {"classes": sorted(set(content.values())), "clips": content, "styles": {i: "" for i in all_ids}}
         (tmp / "actions.json").write_text(json.dumps(actions, indent=1) + "\n", encoding="utf-8")
-        frames = int(sum(s["frames"] for r in ok for s in r["segments"])) * (2 if options.mirror else 1)
+        segs = [s for r in ok for s in r["segments"]]
+        frames = int(sum(s["frames"] for s in segs)) * (2 if options.mirror else 1)
         skipped = {r["file"]: r["error"] for r in report if "error" in r}
         summary = {"written_by": "mld_core data prepare", "dataset": "bvh", "format_version": FORMAT_VERSION,
-                   "fps": TARGET_FPS, "files": len(files), "mapped": len(ok), "clips": len(labels),
-                   "mirrored": len(labels) if options.mirror else 0, "frames": frames,
+                   "fps": TARGET_FPS, "files": len(files), "mapped": len(ok), "clips": len(segs),
+                   "mirrored": len(segs) if options.mirror else 0, "frames": frames,
                    "splits": {k: len(v) for k, v in splits.items()}, "classes": actions["classes"],
                    "skipped": skipped}
         (tmp / REPORT).write_text(json.dumps({"summary": summary, "files": report}, indent=1) + "\n",

@@ -607,3 +607,14 @@ def write_bvh(
             f.write("\n")
 
     atomic_write(path, write)
+
+
+def write_canonical_bvh(path: str | os.PathLike, root_positions, local_rotations, frame_time: float,
+                        units_per_metre: float = 1.0) -> None:
+    """A take of the canonical 22-joint skeleton (mld_core.motion.skeleton, rest offsets in metres) as BVH: root
+    positions (F, 3) in metres, local rotations (F, 22, 4) wxyz; ``units_per_metre`` 100 writes centimetres."""
+    from mld_core.motion import skeleton
+
+    write_bvh(path, list(skeleton.JOINT_NAMES), list(skeleton.PARENTS),
+              np.asarray(skeleton.REST_OFFSETS) * units_per_metre,
+              np.asarray(root_positions, np.float64) * units_per_metre, local_rotations, frame_time)

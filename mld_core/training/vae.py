@@ -19,6 +19,8 @@ from tqdm import tqdm
 
 from mld_core.checkpoint import ModelConfig, load_config, load_weights, save_json, save_weights, skeleton_info
 from mld_core.models.vae import MotionVAE, VAEConfig
+from mld_core.motion import skeleton as sk
+from mld_core.motion.features import FOOT_CONTACT, features_to_joints
 from mld_core.training.common import (Budget, balanced_weights, load_train_state, lr_factor, save_train_state, set_lr,
                                      setup_torch)
 
@@ -66,9 +68,6 @@ class GeometricLoss:
 
     def __call__(self, recon: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, dict]:
         """recon, x: (B, L, F) normalised features of equal-length crops."""
-        from mld_core.motion import skeleton as sk
-        from mld_core.motion.features import FOOT_CONTACT, features_to_joints
-
         pred = features_to_joints(recon.float() * self.std + self.mean)  # (B, L, 22, 3)
         real = features_to_joints(x.float() * self.std + self.mean)
         parents = list(sk.PARENTS[1:])
@@ -112,8 +111,6 @@ class CropSampler:
 @torch.no_grad()
 def validate_mpjpe(vae: MotionVAE, clips, mean, std, max_frames: int, batch: int = 32) -> tuple[float, float]:
     """Root-relative and global MPJPE in mm of encode(mu) -> decode on the first max_frames of each clip."""
-    from mld_core.motion.features import features_to_joints
-
     vae.eval()
     errors, global_errors = [], []
     items = [((c.features[:max_frames] - mean) / std).astype(np.float32) for c in clips]
