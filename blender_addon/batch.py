@@ -88,6 +88,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=0, help="seed of the first take; take i uses seed+i (0)")
     parser.add_argument("--steps", type=int, default=50, help="diffusion steps (50)")
     parser.add_argument("--guidance", type=float, default=None, help="guidance scale (default: the model's)")
+    parser.add_argument("--draft", action="store_true",
+                        help="Draft mode: the model's distilled denoiser in its own few steps (about 10x faster)")
     parser.add_argument("--model", metavar="DIR", help="model folder (default: the bundled model)")
     parser.add_argument("--device", default="cpu", help="cpu, cuda, mps or auto (cpu)")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
@@ -398,7 +400,7 @@ def checked_inputs(args, addon) -> _Inputs:
         lines = batchfile.parse_prompt_lines("\n".join(p.replace("\n", " ") for p in args.prompt), source="--prompt")
     requests = batchfile.requests_from_lines(
         lines, default_seconds=args.seconds, seed=args.seed, extras=extras, steps=args.steps, guidance=args.guidance,
-        variants=1, model_dir=model_dir, device=args.device, threads=args.threads,
+        variants=1, model_dir=model_dir, device=args.device, threads=args.threads, draft=args.draft,
     )
     inputs.check_fps(args.fps, "--fps")
     inputs.number_in_range(args.tolerance, "--tolerance", 0, 180)
@@ -427,6 +429,9 @@ def run(args) -> int:
     t0 = time.perf_counter()
     pipe = model_cache.PipelineCache().get(inp.model_dir, args.device, args.threads)
     load_s = time.perf_counter() - t0
+    if args.draft and getattr(pipe, "draft_denoiser", None) is None:
+        raise BatchError(f"--draft: the model {getattr(pipe, 'model_id', '?')} has no Draft denoiser "
+                         "(make one with `python -m mld_core train draft`)")
     print(f"model {getattr(pipe, 'model_id', '?')} loaded in {load_s:.2f} s")
     records, bvh_takes = key_every_line(args, addon, inp, pipe, scene, obj)
     # 4. Outputs: the .blend, the manifest, the preview, the BVHs: staged, then put in place together.
@@ -514,6 +519,7 @@ def _manifest(args, paths, obj, map_source, pipe, model_dir, retarget, scene, re
             "seconds": args.seconds,
             "seed": args.seed,
             "steps": args.steps,
+            "draft": args.draft,
             "guidance": args.guidance,
             "device": args.device,
             "exact": not args.no_exact,

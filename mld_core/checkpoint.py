@@ -29,6 +29,22 @@ class CheckpointError(Exception):
 
 
 @dataclass
+class DraftConfig:
+    """The Draft denoiser (``draft.safetensors``): a latent consistency model distilled from the model's denoiser
+    (mld_core.training.draft); it takes the guidance scale as an input and samples in a few steps."""
+
+    denoiser: DenoiserConfig = field(default_factory=lambda: DenoiserConfig(guidance_input=True))
+    num_inference_steps: int = 2
+    original_steps: int = 50  # the DDIM grid it was distilled on
+    timestep_scaling: float = 10.0
+    sigma_data: float = 0.5
+
+    def __post_init__(self):
+        if isinstance(self.denoiser, dict):
+            self.denoiser = DenoiserConfig(**self.denoiser)
+
+
+@dataclass
 class ModelConfig:
     """Everything needed to rebuild a model from its folder (saved as config.json)."""
 
@@ -49,6 +65,7 @@ class ModelConfig:
     num_inference_steps: int = 50
     skeleton: dict = field(default_factory=dict)
     repair: RepairConfig = field(default_factory=RepairConfig)  # mld_core.motion.repair, on free 263-d takes
+    draft: DraftConfig | None = None  # a Draft denoiser in draft.safetensors (pipe(..., draft=True))
     provenance: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -62,6 +79,8 @@ class ModelConfig:
             self.denoiser = DenoiserConfig(**self.denoiser)
         if isinstance(self.scheduler, dict):
             self.scheduler = SchedulerConfig(**self.scheduler)
+        if isinstance(self.draft, dict):
+            self.draft = DraftConfig(**self.draft)
 
     def to_dict(self) -> dict:
         return {"format": FORMAT, "format_version": FORMAT_VERSION, **asdict(self)}
@@ -128,7 +147,7 @@ def load_config(model_dir: Path) -> ModelConfig:
             raise ValueError(f"expected a JSON object, got a {type(data).__name__}")
         if data.get("format") != FORMAT:
             raise ValueError(f"format is {data.get('format')!r}, expected {FORMAT!r}")
-        for name in ("vae", "denoiser", "scheduler", "text_encoder"):
+        for name in ("vae", "denoiser", "scheduler", "text_encoder", "draft"):
             if data.get(name) is not None and not isinstance(data[name], dict):
                 raise ValueError(f"{name} must be an object, got {data[name]!r}")
         config = ModelConfig.from_dict(data)
@@ -156,6 +175,13 @@ def check_config(config: ModelConfig) -> None:
     if (std <= 0).any():
         raise ValueError("std must be positive")
     _check_repair(config.repair)
+    if config.draft is not None:
+        steps = config.draft.num_inference_steps
+        if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= config.draft.original_steps:
+            raise ValueError(f"draft.num_inference_steps must be a whole number in 1..{config.draft.original_steps}, "
+                             f"got {steps!r}")
+        if not config.draft.denoiser.guidance_input:
+            raise ValueError("draft.denoiser must take the guidance scale as an input (guidance_input true)")
 
 
 def _check_repair(repair: RepairConfig) -> None:

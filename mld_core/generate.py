@@ -197,6 +197,9 @@ def _run(args, take_report) -> int:
         torch.set_num_threads(args.threads)
     # 2. The model, and what it can be asked.
     pipe = _load(args)
+    if args.draft and pipe.draft_denoiser is None:
+        raise InputError(f"--draft: the model {pipe.model_id} has no Draft denoiser (make one with "
+                         "`python -m mld_core train draft`)")
     cond = pipe.denoiser.config.cond if pipe.denoiser is not None else "none"
     if args.action and cond != "action":
         raise InputError(f"--action needs an action-conditioned model; this model is conditioned on {cond}: "
@@ -213,10 +216,11 @@ def _run(args, take_report) -> int:
     # 3. Generate: line i, variant v uses seed + i * variants + v (the batch's rule with one variant per line).
     seeds = [args.seed + i * args.variants for i in range(len(lines))]
     kwargs = dict(seconds=seconds, num_inference_steps=args.steps, guidance_scale=args.guidance, seed=seeds,
-                  num_variants=args.variants, rank=args.best is not None, constraints=constraints or None)
+                  num_variants=args.variants, rank=args.best is not None, constraints=constraints or None,
+                  draft=args.draft)
     if args.sequence is not None:  # one motion, segment k continuing segment k-1 (seed + k)
         out = pipe.sequence(list(zip(prompts, seconds)), seed=args.seed, overlap_s=SEQUENCE_OVERLAP_S,
-                            num_inference_steps=args.steps, guidance_scale=args.guidance)
+                            num_inference_steps=args.steps, guidance_scale=args.guidance, draft=args.draft)
     elif cond == "action":
         actions = [args.action] * len(prompts) if args.action else prompts
         out = pipe(prompts, actions=actions, **kwargs)
@@ -248,8 +252,11 @@ def register(groups) -> None:
     p.add_argument("--seconds", type=float, default=4.0)
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the first take: line i, variant v of a prompt file uses seed + i * variants + v")
-    p.add_argument("--steps", type=int, default=None, help="DDIM steps (default: the model's, 50)")
+    p.add_argument("--steps", type=int, default=None,
+                   help="DDIM steps (default: the model's, 50); with --draft, consistency steps (default: the Draft's)")
     p.add_argument("--guidance", type=float, default=None, help="classifier-free guidance scale (default: the model's)")
+    p.add_argument("--draft", action="store_true",
+                   help="Draft mode: the model's distilled denoiser, about 10x faster (docs/draft.md)")
     p.add_argument("--variants", type=int, default=1, help="motions per prompt (seeds seed, seed+1, ...)")
     p.add_argument("--best", type=int, default=None, metavar="K",
                    help="score every variant (adherence, skating, float, penetration, jitter: docs/quality.md), "

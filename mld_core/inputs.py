@@ -246,6 +246,7 @@ class GenerateRequest:
     model_dir: str | None = None  # None: the bundled default model
     device: str = "cpu"
     threads: int = 0  # 0: leave torch's default
+    draft: bool = False  # the model's Draft denoiser (a few consistency steps) instead of DDIM with ``steps``
     extra: dict = field(default_factory=dict, compare=False)
 
     @property
@@ -264,7 +265,7 @@ class GenerateRequest:
 
 def validate_request(prompt, seconds=4.0, seed=0, steps=50, guidance=None, variants=1, *, model_dir=None,
                      device="cpu", threads=0, min_seconds: float | None = None,
-                     max_seconds: float | None = None) -> GenerateRequest:
+                     max_seconds: float | None = None, draft: bool = False) -> GenerateRequest:
     """Check every field and return a normalised :class:`GenerateRequest` (seconds rounded to whole frames).
     The length limits are ``min_seconds``/``max_seconds`` when given, else those of ``model_dir``'s config."""
     text = check_prompt(prompt)
@@ -284,7 +285,8 @@ def validate_request(prompt, seconds=4.0, seed=0, steps=50, guidance=None, varia
         raise InputError(f"Unknown device {device!r}; use cpu, cuda, mps or auto")
     model_dir = str(model_dir).strip() if model_dir else None
     return GenerateRequest(prompt=text, seconds=seconds, seed=seed, steps=steps, guidance=guidance,
-                           variants=variants, model_dir=model_dir or None, device=device, threads=threads)
+                           variants=variants, model_dir=model_dir or None, device=device, threads=threads,
+                           draft=bool(draft))
 
 
 # -- output paths -------------------------------------------------------------------------------------------------

@@ -11,6 +11,7 @@ eps = eps(z_t, t, null) + s * (eps(z_t, t, c) - eps(z_t, t, null)), D the VAE de
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
@@ -27,7 +28,7 @@ from mld_core.constraints import planted_foot_speed
 from mld_core.motion.features import FOOT_CONTACT, features_to_joints
 from mld_core.motion.repair import repair_features
 from mld_core.models.vae import MotionVAE
-from mld_core.schedulers import DDIMScheduler
+from mld_core.schedulers import DDIMScheduler, LCMScheduler
 
 
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16}
@@ -62,20 +63,32 @@ def _as_list(value, n: int, name: str) -> list:
 
 class MLDPipeline:
     def __init__(self, config: ModelConfig, vae: MotionVAE, denoiser: LatentDenoiser | None, text_encoder=None,
-                 device: str | torch.device = "cpu", precision: str = "fp32"):
+                 device: str | torch.device = "cpu", precision: str = "fp32",
+                 draft_denoiser: LatentDenoiser | None = None):
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
         self.config = config
         self.device = torch.device(device)
         self.precision = precision
         self.vae = vae.eval().to(self.device)
+        self.vae.decoder.pack_for_cpu_inference()  # no-op off CPU
         # The denoiser runs 2 x 50 times per prompt: in bf16 its weights are cast once (text encoder, VAE and the
         # DDIM update stay in float32).
         self.denoiser = denoiser.eval().to(self.device, PRECISIONS[precision]) if denoiser is not None else None
         if self.denoiser is not None:
             self.denoiser.transformer.pack_for_cpu_inference()  # no-op off CPU
         self.text_encoder = text_encoder
+        if hasattr(text_encoder, "pack_for_cpu_inference") and self.device.type == "cpu":
+            text_encoder.pack_for_cpu_inference()
         self.scheduler = DDIMScheduler(config.scheduler)
+        self.draft_denoiser = None  # the Draft (consistency-distilled) denoiser, from draft.safetensors
+        self.draft_scheduler = None
+        if config.draft is not None and draft_denoiser is not None:
+            self.draft_denoiser = draft_denoiser.eval().to(self.device, PRECISIONS[precision])
+            self.draft_denoiser.transformer.pack_for_cpu_inference()
+            d = config.draft
+            self.draft_scheduler = LCMScheduler(config.scheduler, d.original_steps, d.timestep_scaling, d.sigma_data)
+        self._text_cache: OrderedDict = OrderedDict()  # prompt -> its TextEmbedding (one row, its own tokens)
         self.coverage_index = None  # mld_core.coverage.CoverageIndex, from the model folder's coverage_index.npz
         self._quality = None  # mld_core.eval.quality.QualityScorer, loaded on first use
         mean, std = config.mean_std
@@ -103,9 +116,13 @@ class MLDPipeline:
                     text_encoder = load_text_encoder(config.text_encoder)
                 except (ValueError, TypeError) as exc:
                     raise CheckpointError(f"{model_dir / 'config.json'}: text_encoder: {exc}") from None
+        draft = None
+        if config.draft is not None and denoiser is not None:
+            draft = LatentDenoiser(config.draft.denoiser)
+            load_weights(model_dir / "draft.safetensors", draft)
         if len(config.mean) != config.vae.feature_dim or len(config.std) != config.vae.feature_dim:
             raise CheckpointError(f"{model_dir / 'config.json'}: mean/std must have {config.vae.feature_dim} values")
-        pipe = cls(config, vae, denoiser, text_encoder, device, precision)
+        pipe = cls(config, vae, denoiser, text_encoder, device, precision, draft)
         try:
             pipe.coverage_index = load_for_model(model_dir)
         except ValueError as exc:
@@ -194,20 +211,42 @@ class MLDPipeline:
         return out
 
     # -- conditions ---------------------------------------------------------------------------------------------
-    def _condition(self, prompts: list, actions: list | None, kind: str) -> tuple[torch.Tensor, torch.Tensor]:
-        """(cond tokens, null tokens), each (B, C, d)."""
-        den = self.denoiser
+    def _condition(self, prompts: list, actions: list | None, kind: str,
+                   denoiser: LatentDenoiser) -> tuple[torch.Tensor, torch.Tensor]:
+        """(cond tokens, null tokens) of ``denoiser``, each (B, C, d)."""
         B = len(prompts)
         if kind == "text":
-            text = self.text_encoder(list(prompts))
+            text = self.text_embeddings(prompts)
             text = type(text)(**{k: v.to(self.device) for k, v in vars(text).items()})
-            cond = den.condition_tokens(B, text=text)
+            cond = denoiser.condition_tokens(B, text=text)
         elif kind == "action":
             ids = torch.tensor([self._action_id(a) for a in actions], device=self.device)
-            cond = den.condition_tokens(B, actions=ids)
+            cond = denoiser.condition_tokens(B, actions=ids)
         else:
-            cond = den.null_tokens(B)
-        return cond, den.null_tokens(B)
+            cond = denoiser.null_tokens(B)
+        return cond, denoiser.null_tokens(B)
+
+    TEXT_CACHE_SIZE = 256
+
+    def text_embeddings(self, prompts: list):
+        """The text encoder's embeddings of ``prompts`` (a TextEmbedding, one row per prompt). Each prompt is
+        encoded once per pipeline and kept (the last TEXT_CACHE_SIZE): re-generating a prompt with other seconds or
+        seeds, as the live preview does, skips the text encoder."""
+        from mld_core.models.text_encoder import TextEmbedding
+
+        rows = {p: self._text_cache[p] for p in prompts if p in self._text_cache}
+        new = [p for p in dict.fromkeys(prompts) if p not in rows]
+        if new:
+            emb = self.text_encoder(new)
+            for i, p in enumerate(new):
+                n = int(emb.mask[i].sum())
+                rows[p] = TextEmbedding(emb.pooled[i:i + 1], emb.tokens[i:i + 1, :n], emb.mask[i:i + 1, :n])
+        for p in dict.fromkeys(prompts):
+            self._text_cache[p] = rows[p]
+            self._text_cache.move_to_end(p)
+        while len(self._text_cache) > self.TEXT_CACHE_SIZE:
+            self._text_cache.popitem(last=False)
+        return TextEmbedding.cat([rows[p] for p in prompts])
 
     def _action_id(self, action) -> int:
         names = self.config.actions
@@ -241,16 +280,20 @@ class MLDPipeline:
                  actions: Sequence | None = None, num_inference_steps: int | None = None,
                  guidance_scale: float | None = None, seed: int | Sequence[int] = 0, num_variants: int = 1,
                  callback: Callable[[int, int], bool | None] | None = None, unconditional: bool = False,
-                 rank: bool = False, constraints=None, repair: bool = True) -> MLDOutput:
+                 rank: bool = False, constraints=None, repair: bool = True, draft: bool = False) -> MLDOutput:
         """Generate ``num_variants`` motions per prompt; row i*num_variants + v uses seed ``seed + v``, or
         ``seed[i] + v`` when ``seed`` is a sequence (one per prompt). Any row equals the single run with its seed.
         ``unconditional`` samples with the null condition (the prompts then only label the rows). ``rank`` scores
         every row (``out.badges``) and orders each prompt's variants best first (mld_core.eval.quality.best_first).
         ``constraints`` (a ``mld_core.constraints.Constraints``: poses to hit, a root path, a loop) refines each
         sampled latent to meet them; ``out.residuals`` says how well each row did. ``repair`` applies the model's
-        repairs (config ``repair``: one skeleton, planted feet; mld_core.motion.repair) to free takes."""
+        repairs (config ``repair``: one skeleton, planted feet; mld_core.motion.repair) to free takes. ``draft``
+        samples with the model's Draft denoiser (config ``draft``: a few consistency steps, about 10x faster)."""
         if self.denoiser is None:
             raise CheckpointError("this model folder has only a VAE; sample with sample_prior() or train a denoiser")
+        if draft and self.draft_denoiser is None:
+            raise CheckpointError(f"the model {self.model_id} has no Draft denoiser (draft.safetensors); make one with "
+                                  "`python -m mld_core train draft`")
         timings = {}
         t_start = time.perf_counter()
         cond_kind = "none" if unconditional else self.denoiser.config.cond
@@ -271,8 +314,9 @@ class MLDPipeline:
         actions = _as_list(actions, n_prompts, "actions") if actions is not None else None
         secs = _as_list(seconds, n_prompts, "seconds")
         frames = [self.frames_for(float(s)) for s in secs]
-        steps = self.config.num_inference_steps if num_inference_steps is None else num_inference_steps
-        steps = inputs.int_in_range(steps, "num_inference_steps", 1, 1000)
+        default_steps = self.config.draft.num_inference_steps if draft else self.config.num_inference_steps
+        steps = default_steps if num_inference_steps is None else num_inference_steps
+        steps = inputs.int_in_range(steps, "num_inference_steps", 1, self.config.draft.original_steps if draft else 1000)
         s = inputs.finite_number(self.config.guidance_scale if guidance_scale is None else guidance_scale,
                                  "guidance_scale")
         num_variants = inputs.int_in_range(num_variants, "num_variants", 1, 1024)
@@ -286,29 +330,39 @@ class MLDPipeline:
 
         # 2. Condition c and the null condition for classifier-free guidance.
         t0 = time.perf_counter()
-        cond, null = self._condition(row_prompts, row_actions, cond_kind)
+        denoiser = self.draft_denoiser if draft else self.denoiser
+        cond, null = self._condition(row_prompts, row_actions, cond_kind, denoiser)
         timings["condition_s"] = time.perf_counter() - t0
 
-        # 3. z_T ~ N(0, I), drawn per row from its own seed so a batch equals single runs.
+        # 3. z_T ~ N(0, I), drawn per row from its own generator (seeded per row) so a batch equals single runs.
         n, d = self.config.vae.latent_tokens, self.config.vae.latent_dim
-        z = torch.stack([torch.randn(n, d, generator=torch.Generator().manual_seed(sd)) for sd in seeds]).to(self.device)
+        generators = [torch.Generator().manual_seed(sd) for sd in seeds]
+        z = torch.stack([torch.randn(n, d, generator=g) for g in generators]).to(self.device)  # (B, n, d)
 
-        # 4. DDIM: z_t -> z_{t-1} with eps = eps_null + s * (eps_c - eps_null).
+        # 4. Denoising. Final: DDIM, eps = eps_null + s * (eps_c - eps_null). Draft: consistency steps of the
+        #    distilled denoiser, which takes s as an input (one pass per step), re-noised between steps.
         t0 = time.perf_counter()
-        self.scheduler.set_timesteps(steps)
-        use_guidance = s != 1.0 and cond_kind != "none"
         dtype = PRECISIONS[self.precision]
+        scheduler = self.draft_scheduler if draft else self.scheduler
+        scheduler.set_timesteps(steps)
+        use_guidance = s != 1.0 and cond_kind != "none" and not draft
         both_cond = (torch.cat([null, cond]) if use_guidance else cond).to(dtype)
         both_len = torch.cat([lengths, lengths]) if use_guidance else lengths
-        total = len(self.scheduler.timesteps)
-        for k, t in enumerate(self.scheduler.timesteps):
+        scales = torch.full((B,), s if cond_kind != "none" else 1.0, device=self.device) if draft else None
+        total = len(scheduler.timesteps)
+        for k, t in enumerate(scheduler.timesteps):
             z_in = torch.cat([z, z]) if use_guidance else z
             t_batch = torch.full((z_in.shape[0],), int(t), device=self.device)
-            eps = self.denoiser(z_in.to(dtype), t_batch, both_cond, both_len).float()
+            eps = denoiser(z_in.to(dtype), t_batch, both_cond, both_len, guidance=scales).float()
             if use_guidance:
                 eps_null, eps_cond = eps.chunk(2)
                 eps = eps_null + s * (eps_cond - eps_null)
-            z, _ = self.scheduler.step(eps, t, z)
+            if draft:
+                noise = (torch.stack([torch.randn(n, d, generator=g) for g in generators]).to(self.device)
+                         if k + 1 < total else None)
+                z, _ = scheduler.step(eps, t, z, noise)
+            else:
+                z, _ = scheduler.step(eps, t, z)
             if callback is not None and callback(k + 1, total) is False:
                 raise Cancelled(f"cancelled at step {k + 1} of {total}")
         timings["diffusion_s"] = time.perf_counter() - t0

@@ -114,3 +114,68 @@ class DDIMScheduler(_Schedule):
             noise = torch.randn(sample.shape, generator=generator, dtype=sample.dtype, device=sample.device)
             prev = prev + sigma * noise
         return prev, pred_x0
+
+
+class LCMScheduler(_Schedule):
+    """Multistep sampling of a latent consistency model (Luo et al. 2023; MotionLCM): the model's noise prediction
+    at x_t gives the clean estimate f(x_t, t) = c_skip(t) x_t + c_out(t) x0(eps); between steps the estimate is
+    noised again to the next timestep. Timesteps come from the ``original_steps``-point DDIM grid the model was
+    distilled on (``skip`` = its spacing, the distillation's step from t to t - skip)."""
+
+    def __init__(self, config: SchedulerConfig | None = None, original_steps: int = 50, timestep_scaling: float = 10.0,
+                 sigma_data: float = 0.5):
+        super().__init__(config)
+        n_train = self.config.num_train_timesteps
+        if not 1 <= original_steps <= n_train:
+            raise ValueError(f"original_steps must be in 1..{n_train}, got {original_steps}")
+        self.skip = n_train // original_steps
+        self.grid = torch.arange(0, original_steps) * self.skip + self.config.steps_offset  # ascending, (S,)
+        self.grid = self.grid.clamp(max=n_train - 1)
+        self.timestep_scaling, self.sigma_data = timestep_scaling, sigma_data
+        self.timesteps = self.grid.flip(0)[:1]
+
+    def set_timesteps(self, num_inference_steps: int) -> None:
+        """``num_inference_steps`` timesteps spread evenly over the grid, the largest first."""
+        size = len(self.grid)
+        if not 1 <= num_inference_steps <= size:
+            raise ValueError(f"num_inference_steps must be in 1..{size} for this Draft model, got {num_inference_steps}")
+        picks = torch.linspace(size - 1, 0, num_inference_steps + 1)[:-1].round().long()
+        self.timesteps = self.grid[picks]
+
+    def boundary(self, timesteps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(c_skip, c_out) per timestep: f(x, t) -> x as t -> 0, the x0 estimate elsewhere."""
+        scaled = timesteps.float() * self.timestep_scaling
+        c_skip = self.sigma_data**2 / (scaled**2 + self.sigma_data**2)
+        c_out = scaled / (scaled**2 + self.sigma_data**2).sqrt()
+        return c_skip, c_out
+
+    def denoised(self, model_output: torch.Tensor, timesteps: torch.Tensor, sample: torch.Tensor) -> torch.Tensor:
+        """f(x_t, t) for a batch: model_output and sample (B, ...), timesteps (B,) or a scalar."""
+        timesteps = torch.as_tensor(timesteps).reshape(-1)
+        shape = (-1,) + (1,) * (sample.dim() - 1)
+        a_t = self.alphas_cumprod[timesteps].reshape(shape).to(sample.dtype)  # (B, 1, ...)
+        pred_x0 = (sample - (1 - a_t).sqrt() * model_output) / a_t.sqrt()
+        c_skip, c_out = (c.reshape(shape).to(sample.dtype) for c in self.boundary(timesteps))
+        return c_skip * sample + c_out * pred_x0
+
+    def step(self, model_output: torch.Tensor, timestep: int, sample: torch.Tensor,
+             noise: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """One step from ``timestep``; returns (next sample, clean estimate). Before the last step ``noise`` (like
+        sample) re-noises the estimate to the next timestep; at the last step the next sample is the estimate."""
+        t = int(timestep)
+        denoised = self.denoised(model_output, torch.tensor(t), sample)
+        later = (self.timesteps < t).nonzero()
+        if len(later) == 0:
+            return denoised, denoised
+        if noise is None:
+            raise ValueError("LCM steps before the last need noise")
+        a_next = self.alphas_cumprod[int(self.timesteps[later[0, 0]])]
+        return a_next.sqrt() * denoised + (1 - a_next).sqrt() * noise, denoised
+
+    def teacher_step(self, model_output: torch.Tensor, timesteps: torch.Tensor, sample: torch.Tensor) -> torch.Tensor:
+        """The distillation's ODE step: a DDIM (eta 0) step from each x_t to t - skip, timesteps (B,) >= skip."""
+        shape = (-1,) + (1,) * (sample.dim() - 1)
+        a_t = self.alphas_cumprod[timesteps].reshape(shape)
+        a_prev = self.alphas_cumprod[timesteps - self.skip].reshape(shape)
+        pred_x0 = (sample - (1 - a_t).sqrt() * model_output) / a_t.sqrt()
+        return a_prev.sqrt() * pred_x0 + (1 - a_prev).sqrt() * model_output

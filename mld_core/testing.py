@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mld_core.checkpoint import ModelConfig, save_model
+from mld_core.checkpoint import DraftConfig, ModelConfig, save_model, save_weights
 from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser
 from mld_core.models.transformer import TransformerConfig
 from mld_core.models.vae import MotionVAE, VAEConfig
@@ -33,12 +33,21 @@ def tiny_config(cond: str = "text", actions: tuple = ("walk", "run", "wave"), la
                        num_inference_steps=4)
 
 
-def tiny_model(model_dir: str | Path, seed: int = 0, cond: str = "text", **kwargs) -> Path:
-    """Build and save a tiny random model folder; returns its path."""
+def tiny_model(model_dir: str | Path, seed: int = 0, cond: str = "text", draft: bool = False, **kwargs) -> Path:
+    """Build and save a tiny random model folder; returns its path. ``draft`` adds a random Draft denoiser (whose
+    guidance input has effect)."""
+    from dataclasses import replace
+
     config = tiny_config(cond, **kwargs)
     torch.manual_seed(seed)
     vae = MotionVAE(config.vae)
     denoiser = LatentDenoiser(config.denoiser)
+    if draft:
+        config.draft = DraftConfig(denoiser=replace(config.denoiser, guidance_input=True), num_inference_steps=2)
+        student = LatentDenoiser(config.draft.denoiser)
+        torch.nn.init.normal_(student.guidance_mlp[2].weight, std=0.5)
+        Path(model_dir).mkdir(parents=True, exist_ok=True)
+        save_weights(Path(model_dir) / "draft.safetensors", student)
     return save_model(model_dir, config, vae, denoiser, card="# tiny random test model\n")
 
 

@@ -1,11 +1,15 @@
-"""Fewer DDIM steps: what a take keeps and where the time goes (a measurement for a Draft mode; prints a table).
+"""Fewer steps and the Draft mode: what a take keeps and where the time goes (prints a table).
 
-    .venv/bin/python scripts/steps_table.py [--steps 1,2,4,8,10,20,50] [--seeds 2] [--threads 2] [--repeat 5]
+    .venv/bin/python scripts/steps_table.py [--steps 1,2,4,8,10,20,50,draft1,draft2] [--seeds 2] [--threads 2]
+                                            [--repeat 5] [--model DIR]
 
-For each step count: the physical-check pass rate (mld_core.eval.physical) of the hand-written paraphrases of
+Rows: N = DDIM with N steps; draftN = the model's Draft denoiser with N consistency steps. For each row: the
+physical-check pass rate (mld_core.eval.physical) of the hand-written paraphrases of
 scripts/side_accuracy.py (4 s, --seeds seeds each), the foot skating ratio of the locomotion contents and the mean
 joint jerk of all takes (mld_core.eval.quality), and the time of one 4 s prompt at batch 1 split into text,
-diffusion, decode and features -> joints (median of --repeat runs, one process). R@3 and FID come from
+diffusion, decode and features -> joints (median of --repeat runs, one process): "cold" with a prompt the
+pipeline has not seen (the text encoder runs), "warm" with one it has (its embedding is cached: the live preview's
+case when seconds or seed change). The last column compares each row's cold total with the first row's. R@3 and FID come from
 ``python -m mld_core evaluate t2m --preset reduced --steps N`` (docs/evaluation.md).
 """
 
@@ -30,12 +34,18 @@ from side_accuracy import PARAPHRASES  # noqa: E402
 LOCOMOTION = ("walk", "run", "dash", "walk-back", "walk-left", "walk-right", "walk-turn-left", "walk-turn-right")
 
 
-def quality(pipe, steps: int, seeds: int) -> dict:
+def parse_row(row: str) -> tuple[str, int, bool]:
+    """"50" -> ("50", 50, False); "draft2" -> ("draft2", 2, True)."""
+    draft = row.startswith("draft")
+    return row, int(row[5:] if draft else row), draft
+
+
+def quality(pipe, steps: int, draft: bool, seeds: int) -> dict:
     passed, skating, jerk = [], [], []
     items = [(label, p) for label, prompts in PARAPHRASES.items() for p in prompts]
     prompts = [p for _, p in items]
     for seed in range(seeds):
-        out = pipe(prompts, seconds=4.0, seed=seed, num_inference_steps=steps)
+        out = pipe(prompts, seconds=4.0, seed=seed, num_inference_steps=steps, draft=draft)
         for (label, _), joints in zip(items, out.joints):
             passed.append(physical.passes(joints, label))
             jerk.append(mean_jerk(joints))
@@ -45,47 +55,58 @@ def quality(pipe, steps: int, seeds: int) -> dict:
             "takes": len(passed)}
 
 
-def timing(pipe, steps: int, repeat: int) -> dict:
+def timing(pipe, steps: int, draft: bool, repeat: int, warm: bool) -> dict:
     from mld_core.motion.features import features_to_joints
 
     runs = []
-    for _ in range(repeat):
+    for k in range(repeat):
+        prompt = "a person walks forward and waves" if warm else f"a person walks forward and waves {k} times"
+        if not warm:
+            pipe._text_cache.clear()
         t0 = time.perf_counter()
-        out = pipe(["a person walks forward and waves"], seconds=4.0, seed=0, num_inference_steps=steps)
+        out = pipe([prompt], seconds=4.0, seed=k, num_inference_steps=steps, draft=draft)
         total = time.perf_counter() - t0
         t1 = time.perf_counter()
         features_to_joints(out.features[0, : int(out.lengths[0])])
         runs.append({**out.timings, "total": total, "joints_s": time.perf_counter() - t1})
-    return {k: statistics.median(r[k] for r in runs) for k in ("condition_s", "diffusion_s", "decode_s", "joints_s",
-                                                                "total")}
+    return {k: statistics.median(r.get(k, 0.0) for r in runs)
+            for k in ("condition_s", "diffusion_s", "decode_s", "repair_s", "joints_s", "total")}
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--steps", default="1,2,4,8,10,20,50")
+    parser.add_argument("--steps", default="1,2,4,8,10,20,50", help="rows: DDIM step counts and draftN")
     parser.add_argument("--seeds", type=int, default=2)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeat", type=int, default=5)
+    parser.add_argument("--model", default=None, help="model folder (default: the bundled model)")
+    parser.add_argument("--no-quality", action="store_true", help="timings only")
     args = parser.parse_args(argv)
     import torch
 
     from mld_core.pipeline import MLDPipeline
 
     torch.set_num_threads(args.threads)
-    pipe = MLDPipeline.from_pretrained()
-    pipe(["warm up"], seconds=4.0)
-    rows = []
-    for steps in (int(s) for s in args.steps.split(",")):
-        rows.append((steps, quality(pipe, steps, args.seeds), timing(pipe, steps, args.repeat)))
-    base = rows[-1][2]["total"]
-    print("| DDIM steps | physical pass | skating (locomotion) | jerk (m/s^3) | text ms | diffusion ms | decode ms | "
-          "joints ms | total ms | x last |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
-    for steps, q, t in rows:
-        print(f"| {steps} | {q['pass']:.2f} | {q['skating']:.2f} | {q['jerk']:.1f} | {1e3 * t['condition_s']:.1f} | "
-              f"{1e3 * t['diffusion_s']:.1f} | {1e3 * t['decode_s']:.1f} | {1e3 * t['joints_s']:.1f} | "
-              f"{1e3 * t['total']:.1f} | {t['total'] / base:.2f} |")
-    print(f"({rows[0][1]['takes']} takes per row)")
+    pipe = MLDPipeline.from_pretrained(args.model)
+    rows = [parse_row(r.strip()) for r in args.steps.split(",")]
+    for _, steps, draft in rows:
+        pipe(["warm up"], seconds=4.0, num_inference_steps=steps, draft=draft)
+    results = []
+    for name, steps, draft in rows:
+        q = {} if args.no_quality else quality(pipe, steps, draft, args.seeds)
+        results.append((name, q, timing(pipe, steps, draft, args.repeat, False),
+                        timing(pipe, steps, draft, args.repeat, True)))
+    base = results[0][2]["total"]
+    print("| row | physical pass | skating (locomotion) | jerk (m/s^3) | text ms | diffusion ms | decode ms | "
+          "repair ms | joints ms | total cold ms | total warm ms | cold x first row |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for name, q, t, w in results:
+        qual = (f"{q['pass']:.2f} | {q['skating']:.2f} | {q['jerk']:.1f}" if q else "- | - | -")
+        print(f"| {name} | {qual} | {1e3 * t['condition_s']:.1f} | {1e3 * t['diffusion_s']:.1f} | "
+              f"{1e3 * t['decode_s']:.1f} | {1e3 * t['repair_s']:.1f} | {1e3 * t['joints_s']:.1f} | "
+              f"{1e3 * t['total']:.1f} | {1e3 * w['total']:.1f} | {t['total'] / base:.3f} |")
+    if results[0][1]:
+        print(f"({results[0][1]['takes']} takes per row)")
     return 0
 
 

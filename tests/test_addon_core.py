@@ -468,3 +468,51 @@ def test_bpy_free_modules_import_without_bpy_or_the_blender_layer():
     proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.split() == ["keys", "needs", "bpy", "ok", "False", "[]"]  # no torch, no Blender layer
+
+
+# -- Live Preview's scheduling --------------------------------------------------------------------------------------
+class _Clock:
+    def __init__(self):
+        self.now = 100.0
+
+    def __call__(self):
+        return self.now
+
+
+def test_live_preview_waits_for_the_edits_to_pause_and_runs_only_the_newest():
+    from blender_addon.worker.live import LivePreview
+
+    runner = jobs.JobRunner(lambda job: time.sleep(0.2) or job.request)
+    clock = _Clock()
+    live = LivePreview(runner.submit, debounce_s=0.3, clock=clock)
+    assert not live.waiting and live.seconds_to_wait() == 0.0
+    for k in range(20):  # typing: an edit every 50 ms
+        live.edited()
+        clock.now += 0.05
+        assert live.seconds_to_wait() == pytest.approx(0.25)
+    clock.now += 0.25
+    assert live.seconds_to_wait() == 0.0
+    first = live.fire("prompt 1")
+    live.edited()
+    clock.now += 0.3
+    second = live.fire("prompt 2")  # the first is cancelled: at most one runs and one waits
+    assert first.cancel_requested and not second.cancel_requested and live.cancelled == 1
+    assert second.wait(5) and second.state == jobs.DONE and second.result == "prompt 2"
+    assert first.wait(5) and first.state == jobs.CANCELLED
+    assert live.submitted == 2
+    live.stop()
+    assert live.job is None and not live.waiting
+    runner.shutdown()
+
+
+def test_a_draft_request_reaches_the_pipeline_with_its_own_steps(tmp_path):
+    from blender_addon.worker.generation import generate
+    from mld_core.testing import tiny_pipeline
+
+    pipe = tiny_pipeline(tmp_path / "m", draft=True)
+    request = validate_request("a person walks", 2.0, 3, 50, None, 1, draft=True).with_(extra={"rank": False})
+    result = generate(pipe, request)
+    take = result.takes[0]
+    assert take.steps == 2 and take.provenance()["mld_draft"] is True and take.badges is None
+    same = pipe("a person walks", 2.0, seed=3, draft=True)
+    assert np.allclose(take.joints, same.joints[0], atol=1e-6)

@@ -155,3 +155,45 @@ def test_geometric_terms_are_switches_that_train(folder, tmp_path):
                  "--config", str(cfg)]) == 0
     record = json.loads((run / "log.jsonl").read_text().splitlines()[-1])
     assert {"geo_contact", "geo_bones", "val_global_mpjpe_mm"} <= set(record)
+
+
+def test_draft_distillation_trains_resumes_and_installs(folder, tmp_path):
+    import shutil
+
+    from mld_core.checkpoint import load_config
+
+    cfg_vae, cfg_den = tmp_path / "vae.json", tmp_path / "den.json"
+    cfg_vae.write_text(json.dumps(TINY_VAE))
+    cfg_den.write_text(json.dumps(TINY_DEN))
+    assert main(["train", "vae", "--data", str(folder), "--out", str(tmp_path / "vae"), "--steps", "10",
+                 "--threads", "1", "--config", str(cfg_vae)]) == 0
+    teacher = tmp_path / "teacher"
+    assert main(["train", "denoiser", "--data", str(folder), "--vae", str(tmp_path / "vae"), "--out", str(teacher),
+                 "--steps", "20", "--threads", "1", "--config", str(cfg_den), "--lr", "1e-3"]) == 0
+    cfg_draft = tmp_path / "draft.json"
+    cfg_draft.write_text(json.dumps({"batch_size": 16, "save_every": 10, "crops_per_clip": 2}))
+    run = tmp_path / "draft"
+    args = ["train", "draft", "--data", str(folder), "--teacher", str(teacher), "--out", str(run), "--threads", "1",
+            "--config", str(cfg_draft), "--lr", "1e-3"]
+    assert main(args + ["--steps", "40"]) == 0
+    losses = [json.loads(line)["loss"] for line in (run / "log.jsonl").read_text().splitlines()]
+    assert len(losses) == 4 and losses[-1] < losses[0]
+    assert main(args + ["--steps", "50", "--resume"]) == 0
+    assert json.loads((run / "log.jsonl").read_text().splitlines()[-1])["step"] == 50
+    # the run folder is a model folder with a Draft; installing copies it (fp16) into the teacher's folder
+    run_pipe = MLDPipeline.from_pretrained(run)
+    assert run_pipe.config.draft.denoiser.guidance_input and run_pipe.config.provenance["draft_steps"] == 50
+    installed = tmp_path / "installed"
+    shutil.copytree(teacher, installed)
+    assert main(args[:6] + ["--teacher", str(installed), "--out", str(tmp_path / "draft2"), "--threads", "1",
+                            "--config", str(cfg_draft), "--steps", "10", "--install"]) == 0
+    assert (installed / "draft.safetensors").is_file() and load_config(installed).draft is not None
+    from mld_core.training.draft import install_draft
+
+    install_draft(run, installed)  # the 50-step run into the same folder
+    a = run_pipe(["a person walks"], seconds=1.5, seed=3, draft=True)
+    b = MLDPipeline.from_pretrained(installed)(["a person walks"], seconds=1.5, seed=3, draft=True)
+    assert np.allclose(a.joints, b.joints, atol=2e-2)  # fp16 weights
+    assert main(["train", "draft", "--data", str(folder), "--teacher", str(tmp_path / "vae"), "--out",
+                 str(tmp_path / "bad"), "--steps", "1"]) == 2  # a VAE-only folder has nothing to distil
+    assert not (tmp_path / "bad").exists()

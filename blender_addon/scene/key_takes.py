@@ -17,15 +17,14 @@ from dataclasses import dataclass, field
 
 from mld_core.rig import bone_maps
 from mld_core.rig.keying import (
+    KeyPlan,
     RetargetSettings,
-    Take,
     canonical_map,
     detections,
     exact_road,
     map_problem,
     missing_message,
-    take_contacts,
-    take_keys,
+    plan_takes,
 )
 
 from ..worker import naming
@@ -134,8 +133,8 @@ def apply_result(obj, result, scene, *, exact: bool = True, set_frame_range: boo
     return report
 
 
-def plan_keys(obj, result, scene, options: RetargetSettings, bone_map, exact: bool, report: ApplyReport):
-    """Every take's keys, computed before anything in the file changes: ([(take, keys, seconds)], bone map)."""
+def read_plan(obj, scene, options: RetargetSettings, bone_map=None, exact: bool = True) -> KeyPlan:
+    """What keying ``obj`` needs, read from the file (main thread): its rest, bone map, rotation modes, the road."""
     canonical = canonical_armature.is_canonical(obj)
     modes = read_rig.rotation_modes(obj)
     on_exact_road = exact_road(canonical, bone_map is not None, options, modes)
@@ -146,20 +145,26 @@ def plan_keys(obj, result, scene, options: RetargetSettings, bone_map, exact: bo
     rest = read_rig.read_rig(obj)
     if bone_map is None:
         bone_map = canonical_map(rest.names) if canonical and stored_map(obj) is None else bone_map_of(obj)
-    report.retargeted = not on_exact_road
-    report.bone_map = bone_map.source if report.retargeted else ""
-    planned = []
-    for take in result.takes:
-        t0 = time.perf_counter()
-        contacts = take_contacts(take) if options.foot_lock else None
-        road_take = Take(take.joints, take.local_quats, contacts, take.fps)
+    return KeyPlan(rest, bone_map, options, scene_fps(scene), scene.frame_start, on_exact_road, modes, exact)
+
+
+def plan_keys(obj, result, scene, options: RetargetSettings, bone_map, exact: bool, report: ApplyReport):
+    """Every take's keys, computed before anything in the file changes: ([(take, keys, seconds)], bone map). Keys
+    already computed on the worker for this armature and these settings (``result.planned``: (KeyPlan, planned))
+    are used as they are."""
+    ready = getattr(result, "planned", None)
+    if ready is not None and bone_map is None and ready[0].rig.name == obj.name and ready[0].settings == options \
+            and ready[0].fps == scene_fps(scene) and ready[0].frame_start == scene.frame_start:
+        plan, planned = ready
+    else:
+        plan = read_plan(obj, scene, options, bone_map, exact)
         try:
-            keys = take_keys(road_take, rest, bone_map, options, fps=report.fps, frame_start=scene.frame_start,
-                             exact=on_exact_road, current_modes=modes, exact_locations=exact)
+            planned = plan_takes(result.takes, plan)
         except bone_maps.BoneMapError as exc:
             raise ValueError(missing_message(exc, obj.name)) from None
-        planned.append((take, keys, time.perf_counter() - t0))
-    return planned, bone_map
+    report.retargeted = not plan.exact
+    report.bone_map = plan.bone_map.source if report.retargeted else ""
+    return planned, plan.bone_map
 
 
 def write_keys(obj, planned, bone_map, options: RetargetSettings, exact: bool, start: int, assign: bool,

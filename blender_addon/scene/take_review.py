@@ -12,7 +12,11 @@ def mark_pending(obj, actions: list[str], previous: str) -> None:
     preview before a decision rejects the first."""
     if PENDING in obj:
         previous = str(obj.get(PREVIOUS, ""))
+        ad = obj.animation_data
+        new = ad.action if ad is not None and ad.action is not None and ad.action.name in actions else None
         reject(obj)
+        if new is not None:  # the rejection gave the armature its old Action back: the new take plays instead
+            _assign(obj, new)
     obj[PENDING] = ",".join(actions)
     obj[PREVIOUS] = previous
 
@@ -32,8 +36,6 @@ def reject(obj) -> str:
     """Delete the pending takes (their Actions and NLA strips) and assign the previous Action again."""
     import bpy
 
-    from .write_action import action_slot
-
     names = pending(obj)
     previous = bpy.data.actions.get(str(obj.get(PREVIOUS, "")))
     ad = obj.animation_data
@@ -41,16 +43,22 @@ def reject(obj) -> str:
         for track in list(ad.nla_tracks):
             if any(s.action is not None and s.action.name in names for s in track.strips):
                 ad.nla_tracks.remove(track)
-        ad.action = previous
-        slot = action_slot(previous) if previous is not None else None
-        if slot is not None:
-            ad.action_slot = slot
+        _assign(obj, previous)
     for name in names:
         action = bpy.data.actions.get(name)
         if action is not None:
             bpy.data.actions.remove(action)
     _clear(obj)
     return f"Removed {', '.join(names)}" if names else "Nothing to reject"
+
+
+def _assign(obj, action) -> None:
+    from .write_action import action_slot
+
+    obj.animation_data.action = action
+    slot = action_slot(action) if action is not None else None
+    if slot is not None:
+        obj.animation_data.action_slot = slot
 
 
 def _clear(obj) -> None:

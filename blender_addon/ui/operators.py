@@ -42,6 +42,7 @@ def request_from_settings(settings, prefs, target=None):
         model_dir=(prefs.model_dir if prefs is not None else "") or env.model_dir_override(),
         device=prefs.device if prefs is not None else "cpu",
         threads=prefs.threads if prefs is not None else 0,
+        draft=getattr(settings, "mode", "FINAL") == "DRAFT",
     )
     rows = [(row.prompt, row.seconds) for row in getattr(settings, "sequence", ())]
     if rows:  # one take from the sequence's segments (the first one's prompt and length name it)
@@ -165,6 +166,43 @@ class MLD_OT_generate(bpy.types.Operator):
             # Nothing changed yet: no undo step now. The timer pushes exactly one when the keys land.
             return {"CANCELLED"}
         return {"FINISHED"} if level == "INFO" else {"CANCELLED"}
+
+
+class MLD_OT_keep_live(bpy.types.Operator):
+    """Make the take for real, as Generate does (in the chosen mode), and turn Live Preview off"""
+
+    bl_idname = "mld.keep_live"
+    bl_label = "Keep"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        settings = getattr(context.scene, "mld_motion", None)
+        if settings is None or not settings.live_preview:
+            cls.poll_message_set("Live Preview is off")
+            return False
+        problem = check_target(resolve_target(context))
+        if problem:
+            cls.poll_message_set(problem)
+            return False
+        return True
+
+    def execute(self, context):
+        from .preferences import get_prefs
+
+        settings = context.scene.mld_motion
+        obj = resolve_target(context)
+        try:
+            request = request_from_settings(settings, get_prefs(context), obj)
+        except RequestError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        settings.live_preview = False  # cancels the preview and gives the armature back its Action
+        wait = bpy.app.background
+        level, message = do_generate(obj, context.scene, request, exact=settings.exact,
+                                     set_frame_range=settings.set_frame_range, wait=wait)
+        self.report({level}, message)
+        return {"FINISHED"} if wait and level == "INFO" else {"CANCELLED"}
 
 
 class MLD_OT_cancel(bpy.types.Operator):
@@ -332,6 +370,7 @@ class MLD_OT_reject_take(_ReviewTake, bpy.types.Operator):
 
 classes = (
     MLD_OT_generate,
+    MLD_OT_keep_live,
     MLD_OT_accept_take,
     MLD_OT_reject_take,
     MLD_OT_cancel,
@@ -354,8 +393,11 @@ def register():
 
 
 def unregister():
+    from . import live_preview
+
     if _on_load_pre in bpy.app.handlers.load_pre:
         bpy.app.handlers.load_pre.remove(_on_load_pre)
+    live_preview.shutdown()
     runtime.shutdown()
     for cls in reversed(classes):
         bpy.utils.unregister_class(cls)

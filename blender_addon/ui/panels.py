@@ -44,8 +44,16 @@ class MLD_PT_generate(bpy.types.Panel):
         row.prop(settings, "seed")
         row.operator("mld.randomize_seed", text="", icon="FILE_REFRESH")
         row = col.row(align=True)
-        row.prop(settings, "steps")
+        row.prop(settings, "mode", expand=True)
+        row = col.row(align=True)
+        steps = row.row(align=True)
+        steps.enabled = settings.mode == "FINAL"  # a Draft runs its own few steps
+        steps.prop(settings, "steps")
         row.prop(settings, "guidance")
+        row = layout.row(align=True)
+        row.prop(settings, "live_preview", toggle=True, icon="PLAY")
+        if settings.live_preview:
+            row.operator("mld.keep_live", icon="CHECKMARK")
         row = layout.row(align=True)
         row.prop(settings, "loop", toggle=True)
         row.prop(settings, "follow_curve", text="", icon="CURVE_DATA")
@@ -72,7 +80,9 @@ class MLD_PT_generate(bpy.types.Panel):
         row.prop(settings, "set_frame_range", toggle=True)
 
         job = runtime.current_job()
-        if job is not None:
+        if settings.live_preview:
+            layout.label(text="Live Preview: edits regenerate a Draft take", icon="INFO")
+        elif job is not None:
             row = layout.row(align=True)
             label = f"{job.stage.capitalize()} {job.step_done}/{job.step_total}" if job.step_total else job.stage.capitalize()
             if hasattr(row, "progress"):

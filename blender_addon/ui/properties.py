@@ -8,7 +8,7 @@ from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProp
 
 from mld_core.rig.keying import DEFAULT_TOLERANCE_DEG, MATCH_CHOICES, ROTATION_CHOICES
 
-from . import quality_panel
+from . import live_preview, quality_panel
 from ..worker.validation import MAX_STEPS, MAX_VARIANTS, SEED_MAX, model_limits
 
 _LIMITS = model_limits()  # the bundled model's lengths (config.json only); another model's are checked on Generate
@@ -16,6 +16,15 @@ _LIMITS = model_limits()  # the bundled model's lengths (config.json only); anot
 
 def _prompt_changed(self, context):
     quality_panel.prompt_changed(self, context)
+    live_preview.edited(self, context)
+
+
+def _setting_changed(self, context):
+    live_preview.edited(self, context)
+
+
+def _live_toggled(self, context):
+    live_preview.toggled(self, context)
 
 
 def _is_armature(self, obj):
@@ -52,8 +61,26 @@ class MLD_SceneSettings(bpy.types.PropertyGroup):
         step=50,
         precision=2,
         unit="TIME_ABSOLUTE",
+        update=_setting_changed,
     )
-    seed: IntProperty(name="Seed", description="Same seed + same settings = same motion", default=0, min=0, max=SEED_MAX)
+    seed: IntProperty(name="Seed", description="Same seed + same settings = same motion", default=0, min=0, max=SEED_MAX,
+                      update=_setting_changed)
+    mode: EnumProperty(
+        name="Mode",
+        description="Draft: the model's distilled denoiser in a few steps, about 10x faster, for trying prompts; "
+        "Final: the full sampler (Steps)",
+        items=[("FINAL", "Final", "The full sampler with the Steps below"),
+               ("DRAFT", "Draft", "A few steps of the distilled denoiser: about 10x faster")],
+        default="FINAL",
+    )
+    live_preview: BoolProperty(
+        name="Live Preview",
+        description="While on, editing the prompt, seconds or seed regenerates a Draft take on the armature; nothing "
+        "is kept until Keep, and turning it off gives the armature back its Action",
+        default=False,
+        update=_live_toggled,
+        options=set(),
+    )
     guidance: FloatProperty(
         name="Guidance",
         description="How strongly the prompt steers the motion (0: the model's default, about 4)",

@@ -33,6 +33,7 @@ class Target:
     set_frame_range: bool
     options: object = None  # apply.RetargetSettings as they were when Generate was pressed (None: read them at the end)
     preview: bool = False  # the takes stay pending until Accept or Reject (scene/take_review.py)
+    live: bool = False  # a Live Preview take (ui/live_preview.py): dropped if Live Preview was turned off meanwhile
 
 
 _targets: dict[int, Target] = {}
@@ -115,6 +116,8 @@ def finish_job(job, target: Target | None) -> tuple[str, str]:
 
     scene = bpy.data.scenes.get(target.scene_name) if target else None
     scene = scene or bpy.context.scene
+    if job.state == CANCELLED and target is not None and target.live:
+        return "INFO", "Live Preview: a newer edit replaced this take"
     if job.state == CANCELLED:
         record_outcome(scene, message="Cancelled")
         return "WARNING", "Generation cancelled"
@@ -123,6 +126,8 @@ def finish_job(job, target: Target | None) -> tuple[str, str]:
             print(f"MLD: generation failed:\n{job.details}", file=sys.stderr)
         record_outcome(scene, error=job.error)
         return "ERROR", job.error
+    if target.live and not getattr(settings_of(scene), "live_preview", False):
+        return "INFO", "Live Preview is off: its last take was dropped"
     obj = _find_object(target) if target else None
     if obj is None:
         error = f"The armature {target.object_name if target else ''!r} is gone; nothing was keyed"
@@ -144,6 +149,8 @@ def finish_job(job, target: Target | None) -> tuple[str, str]:
         return "ERROR", str(exc)
     elapsed = job.elapsed
     message = f"{', '.join(report.actions)}: {report.frames} frames at {report.fps:g} fps in {elapsed:.2f} s"
+    if target.live:
+        message = f"Live Preview: {message}"
     record_outcome(scene, message=message, seconds=elapsed, frames=report.frames, actions=report.actions)
     return "INFO", message
 
@@ -159,6 +166,8 @@ def _tick():
         if target is None:
             continue  # submitted before another file was loaded: its armature is not in this file
         level, message = finish_job(job, target)
+        if target.live and level != "ERROR":
+            continue  # previews are not undo steps and do not fill the status bar
         if job.state == DONE and level == "INFO":
             try:  # the keys are one undo step
                 bpy.ops.ed.undo_push(message="Generate Motion")

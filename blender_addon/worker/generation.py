@@ -55,6 +55,7 @@ class Take:
             "variant": int(self.variant),
             "variants": int(self.request.variants),
             "steps": int(self.steps),
+            "draft": bool(self.request.draft),
             "guidance": float(self.guidance) if self.guidance is not None else -1.0,
             "seconds": float(self.request.seconds),
             "frames": self.frames,
@@ -90,6 +91,7 @@ class GenerationResult:
     load_s: float = 0.0
     generate_s: float = 0.0
     pose_s: float = 0.0
+    planned: tuple | None = None  # (KeyPlan, [(take, keys, seconds)]): keys computed here for request.extra["key_plan"]
 
     @property
     def total_s(self) -> float:
@@ -111,15 +113,20 @@ def generate(pipe, request: GenerateRequest, callback=None, check_cancel=None) -
     guidance = request.guidance
     coverage = pipe.coverage([request.prompt])[0] if hasattr(pipe, "coverage") else None
     constraints, sequence = request.extra.get("constraints"), request.extra.get("sequence")
+    steps = None if request.draft else request.steps  # a Draft runs its own few steps
+    draft = {"draft": True} if request.draft else {}  # (pipelines without a Draft mode take no draft argument)
     if sequence:  # one motion from prompt segments (a batch job)
-        out = pipe.sequence(sequence, seed=request.seed, num_inference_steps=request.steps, guidance_scale=guidance)
+        out = pipe.sequence(sequence, seed=request.seed, num_inference_steps=steps, guidance_scale=guidance, **draft)
     else:
-        out = pipe([request.prompt], seconds=request.seconds, num_inference_steps=request.steps,
+        out = pipe([request.prompt], seconds=request.seconds, num_inference_steps=steps,
                    guidance_scale=guidance, seed=request.seed, num_variants=request.variants, callback=callback,
-                   rank=True, constraints=constraints or None)
+                   rank=request.extra.get("rank", True), constraints=constraints or None, **draft)
     generated = time.perf_counter() - start
     if check_cancel is not None:
         check_cancel()
+    used_steps = request.steps
+    if request.draft:
+        used_steps = getattr(getattr(getattr(pipe, "config", None), "draft", None), "num_inference_steps", 0)
     used_guidance = guidance
     if used_guidance is None:
         used_guidance = getattr(getattr(pipe, "config", None), "guidance_scale", None)
@@ -144,7 +151,7 @@ def generate(pipe, request: GenerateRequest, callback=None, check_cancel=None) -
             fps=fps,
             model_id=model_id,
             guidance=used_guidance,
-            steps=request.steps,
+            steps=used_steps,
             seconds_generated=generated,
             timings=dict(getattr(out, "timings", {}) or {}),
             contacts=np.asarray(out.features[row, :n, -4:], np.float64),
@@ -174,6 +181,11 @@ def make_work(cache):
         result = generate(pipe, request, callback=job.step, check_cancel=job.check_cancel)
         result.load_s = load_s
         job.stage = "posing"
+        plan = request.extra.get("key_plan")
+        if plan is not None:  # the keys too, off the main thread (Live Preview: only writing them is left there)
+            from mld_core.rig.keying import plan_takes
+
+            result.planned = (plan, plan_takes(result.takes, plan))
         return result
 
     return work

@@ -226,8 +226,8 @@ class JobRunner:
                 if not isinstance(exc, Exception):
                     interrupt = exc  # KeyboardInterrupt / SystemExit: record, then let it through
         job.ended_at = time.perf_counter()
-        job._ended.set()
         if report:
-            self._finished.put(job)
+            self._finished.put(job)  # before wait() returns: a waiter's next finished() call sees the job
+        job._ended.set()
         if interrupt is not None:
             raise interrupt

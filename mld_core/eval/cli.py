@@ -51,6 +51,8 @@ def register(groups) -> None:
     e.add_argument("--mm-repeats", type=int, default=None)
     e.add_argument("--steps", type=int, default=None, help="DDIM steps (default: the model's)")
     e.add_argument("--guidance", type=float, default=None, help="guidance scale (default: the model's)")
+    e.add_argument("--draft", action="store_true", help="sample with the model's Draft denoiser (its default steps "
+                   "unless --steps)")
     e.add_argument("--batch-size", type=int, default=32, help="generation batch")
     e.add_argument("--action-prompt", default=None,
                    help="a2m with a text model: prompt template, {action} is replaced by the action's name "
@@ -132,7 +134,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
                  "mm_repeats": args.mm_repeats, "num_inference_steps": args.steps, "guidance_scale": args.guidance}
     overrides["action_prompt"] = args.action_prompt
     settings = replace(settings, **{k: v for k, v in overrides.items() if v is not None},
-                       split=args.split, seed=args.seed, batch_size=args.batch_size, vae_sample=not args.vae_mean)
+                       split=args.split, seed=args.seed, batch_size=args.batch_size, vae_sample=not args.vae_mean,
+                       draft=args.draft)
     if settings.replications < 1:
         raise _usage("--replications must be >= 1")
     if args.threads:
@@ -151,6 +154,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
         pipe = MLDPipeline.from_pretrained(args.model, precision=args.precision)
     except (CheckpointError, FileNotFoundError) as exc:
         raise _usage(f"cannot load the model: {exc}") from None
+    if args.draft and pipe.draft_denoiser is None:
+        raise _usage(f"{args.model or 'the bundled model'} has no Draft denoiser (train one with `train draft`)")
     if pipe.denoiser is None and args.task != "vae":
         raise _usage(f"{args.model} holds only a VAE: evaluate it with `evaluate vae`")
     if args.task != "vae":

@@ -69,6 +69,7 @@ class EvalSettings:
     batch_size: int = 32  # generation batch
     num_inference_steps: int | None = None  # None: the model's default
     guidance_scale: float | None = None
+    draft: bool = False  # sample with the model's Draft denoiser
     vae_sample: bool = True  # decode z ~ q(z|x) as MLD does; False: the posterior mean
     action_prompt: str = "a person does the {action} motion"  # a2m with a text model: the prompt per action
 
@@ -122,6 +123,8 @@ class PipelineGenerator:
             kw["num_inference_steps"] = self.settings.num_inference_steps
         if self.settings.guidance_scale is not None:
             kw["guidance_scale"] = self.settings.guidance_scale
+        if self.settings.draft:
+            kw["draft"] = True
         return kw
 
     def _call(self, prompts: list, frames: list[int], seeds: list[int], num_variants: int = 1, **kw):

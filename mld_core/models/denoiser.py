@@ -31,6 +31,7 @@ class DenoiserConfig:
     length_conditioning: bool = True
     max_frames: int = 196
     cond_dropout: float = 0.1
+    guidance_input: bool = False  # the guidance scale is an input (a Draft denoiser: guidance costs one pass)
     transformer: TransformerConfig = field(default_factory=lambda: TransformerConfig(layers=5))
 
     def __post_init__(self):
@@ -74,6 +75,10 @@ class LatentDenoiser(nn.Module):
         self.time_mlp = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
         if config.length_conditioning:
             self.length_mlp = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
+        if config.guidance_input:  # zero-initialised last layer: a fresh student starts as its teacher
+            self.guidance_mlp = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
+            nn.init.zeros_(self.guidance_mlp[2].weight)
+            nn.init.zeros_(self.guidance_mlp[2].bias)
         if config.cond == "text":
             self.text_proj = nn.Linear(config.text_dim, d)
             if config.text_pool_tokens:
@@ -118,9 +123,9 @@ class LatentDenoiser(nn.Module):
 
     # -- noise prediction ---------------------------------------------------------------------------------------
     def forward(self, z_t: torch.Tensor, timesteps: torch.Tensor, cond: torch.Tensor,
-                lengths: torch.Tensor | None = None) -> torch.Tensor:
-        """z_t (B, n, latent_dim), timesteps (B,), cond (B, C, d) from ``condition_tokens``, lengths (B,) frames
-        -> predicted noise (B, n, latent_dim)."""
+                lengths: torch.Tensor | None = None, guidance: torch.Tensor | None = None) -> torch.Tensor:
+        """z_t (B, n, latent_dim), timesteps (B,), cond (B, C, d) from ``condition_tokens``, lengths (B,) frames,
+        guidance (B,) scales (``guidance_input`` denoisers only) -> predicted noise (B, n, latent_dim)."""
         cfg = self.config
         d = cfg.transformer.dim
         dtype = self.latent_in.weight.dtype
@@ -130,6 +135,10 @@ class LatentDenoiser(nn.Module):
                 raise ValueError("this denoiser is conditioned on the target length: pass lengths")
             length = sinusoidal_embedding(lengths.float() * (1000.0 / cfg.max_frames), d).to(dtype)  # (B, d)
             time = time + self.length_mlp(length)
+        if cfg.guidance_input:
+            if guidance is None:
+                raise ValueError("this denoiser takes the guidance scale as an input: pass guidance")
+            time = time + self.guidance_mlp(sinusoidal_embedding(guidance.float() * 100.0, d).to(dtype))
         latent = self.latent_in(z_t)  # (B, n, d)
         if cfg.transformer.cross_attention:
             seq = torch.cat([time[:, None], latent], dim=1) + self.positions  # (B, 1 + n, d)

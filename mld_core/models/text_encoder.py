@@ -66,6 +66,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from mld_core.models.transformer import _linear, _pack, packing_available
+
 from .tokenizer import WordPieceTokenizer, builtin_vocab
 
 __all__ = [
@@ -300,17 +302,23 @@ class _Layer(nn.Module):
             self.register_buffer(name, tensor, persistent=False)
         self.heads = heads
         self.eps = eps
+        self.packed: dict = {}  # oneDNN-prepacked weights (MiniLMEncoder.pack_for_cpu_inference)
+
+    def pack(self) -> None:
+        self.packed = {name: _pack(getattr(self, f"{name}_weight"), getattr(self, f"{name}_bias"))
+                       for name in ("qkv", "out", "ff1", "ff2")}
 
     def forward(self, x: torch.Tensor, attn_mask: torch.Tensor | None) -> torch.Tensor:
         b, l, d = x.shape
-        qkv = F.linear(x, self.qkv_weight, self.qkv_bias)  # (B, L, 3D)
+        pk = self.packed
+        qkv = _linear(x, self.qkv_weight, self.qkv_bias, pk.get("qkv"))  # (B, L, 3D)
         q, k, v = qkv.view(b, l, 3, self.heads, d // self.heads).permute(2, 0, 3, 1, 4)  # 3 x (B, H, L, Dh)
         a = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask)  # (B, H, L, Dh)
         a = a.transpose(1, 2).reshape(b, l, d)  # (B, L, D)
-        x = x + F.linear(a, self.out_weight, self.out_bias)
+        x = x + _linear(a, self.out_weight, self.out_bias, pk.get("out"))
         x = F.layer_norm(x, (d,), self.ln1_weight, self.ln1_bias, self.eps)  # post-LN
-        h = F.gelu(F.linear(x, self.ff1_weight, self.ff1_bias))  # (B, L, F)
-        x = x + F.linear(h, self.ff2_weight, self.ff2_bias)
+        h = _linear(x, self.ff1_weight, self.ff1_bias, pk.get("ff1"), gelu=True)  # (B, L, F)
+        x = x + _linear(h, self.ff2_weight, self.ff2_bias, pk.get("ff2"))
         return F.layer_norm(x, (d,), self.ln2_weight, self.ln2_bias, self.eps)  # (B, L, D)
 
 
@@ -461,6 +469,15 @@ class MiniLMEncoder(TextEncoder):
         return enc
 
     # -- running ---------------------------------------------------------------------------------------------------
+    def pack_for_cpu_inference(self) -> bool:
+        """Prepack the layers' weight matrices for oneDNN once (a prompt's few tokens then encode about 2x faster
+        on a CPU); False where oneDNN is unavailable or the weights are not on the CPU."""
+        if self.device.type != "cpu" or not packing_available():
+            return False
+        for layer in self.layers:
+            layer.pack()
+        return True
+
     def tokenize(self, texts: Sequence[str]) -> tuple[torch.Tensor, torch.Tensor]:
         """ids (B, L) int64 and mask (B, L) bool on the encoder's device ([CLS] .. [SEP], padded, truncated)."""
         ids, mask = self.tokenizer.batch(_check_texts(texts), self.max_tokens)

@@ -55,28 +55,39 @@ class SkipTransformer(nn.Module):
         self._packed: dict = {}  # id(layer) -> prepacked weights; see pack_for_cpu_inference
 
     def _run(self, layer: nn.Module, x, padding_mask, memory, memory_padding_mask):
+        plain = padding_mask is None and memory_padding_mask is None and not self.training and not torch.is_grad_enabled()
         if self.config.cross_attention:
+            if plain:
+                return decoder_layer_inference(layer, x, memory, self._packed.get(id(layer)))
             return layer(x, memory, tgt_key_padding_mask=padding_mask, memory_key_padding_mask=memory_padding_mask)
-        if padding_mask is None and not self.training and not torch.is_grad_enabled():
+        if plain:
             return encoder_layer_inference(layer, x, self._packed.get(id(layer)))
         return layer(x, src_key_padding_mask=padding_mask)
 
     # -- CPU inference ------------------------------------------------------------------------------------------
     def pack_for_cpu_inference(self) -> bool:
-        """Keep oneDNN-prepacked copies of the encoder layers' weights for inference without a padding mask (the
-        denoiser's steps): each matrix is reordered once instead of on every call, which halves a step's time on a
-        CPU at the few tokens a step runs. A snapshot: ``train()`` drops it. False where oneDNN is unavailable."""
+        """Keep oneDNN-prepacked copies of the layers' weights for inference without padding masks (the denoiser's
+        steps, the decoding of rows of one length): each matrix is reordered once instead of on every call, which
+        halves a step's time on a CPU at the few tokens a step runs. A snapshot: ``train()`` drops it. False where
+        oneDNN is unavailable."""
         self._packed = {}
-        if self.config.cross_attention or not _packing_available(self):
+        if not _packing_available(self):
             return False
+        d = self.config.dim
         for layer in [*self.input_blocks, *self.middle_blocks, *self.output_blocks]:
             attn = layer.self_attn
-            self._packed[id(layer)] = {
+            packed = {
                 "in": _pack(attn.in_proj_weight, attn.in_proj_bias),
                 "out": _pack(attn.out_proj.weight, attn.out_proj.bias),
                 "ff1": _pack(layer.linear1.weight, layer.linear1.bias),
                 "ff2": _pack(layer.linear2.weight, layer.linear2.bias),
             }
+            if self.config.cross_attention:
+                cross = layer.multihead_attn
+                packed["cross_q"] = _pack(cross.in_proj_weight[:d], cross.in_proj_bias[:d])
+                packed["cross_kv"] = _pack(cross.in_proj_weight[d:], cross.in_proj_bias[d:])
+                packed["cross_out"] = _pack(cross.out_proj.weight, cross.out_proj.bias)
+            self._packed[id(layer)] = packed
         return True
 
     def train(self, mode: bool = True):
@@ -101,10 +112,15 @@ class SkipTransformer(nn.Module):
         return self.norm(x)
 
 
+def packing_available() -> bool:
+    """Whether this torch build has oneDNN's prepacked linear ops."""
+    return (torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_reorder_linear_weight")
+            and hasattr(torch.ops.mkldnn, "_linear_pointwise"))
+
+
 def _packing_available(module: nn.Module) -> bool:
     p = next(module.parameters(), None)
-    return (p is not None and p.device.type == "cpu" and torch.backends.mkldnn.is_available()
-            and hasattr(torch.ops.mkldnn, "_reorder_linear_weight") and hasattr(torch.ops.mkldnn, "_linear_pointwise"))
+    return p is not None and p.device.type == "cpu" and packing_available()
 
 
 def _pack(weight: torch.Tensor, bias: torch.Tensor | None) -> tuple:
@@ -146,3 +162,32 @@ def sinusoidal_embedding(positions: torch.Tensor, dim: int, max_period: float = 
     freqs = torch.exp(-math.log(max_period) * torch.arange(half, dtype=torch.float32, device=positions.device) / half)
     angles = positions.float()[..., None] * freqs  # (..., half)
     return torch.cat([torch.sin(angles), torch.cos(angles)], dim=-1)
+
+
+def _attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, heads: int) -> torch.Tensor:
+    """Multi-head attention of q (B, S, d) over k, v (B, M, d) -> (B, S, d)."""
+    B, S, d = q.shape
+    M = k.shape[1]
+    q = q.view(B, S, heads, d // heads).transpose(1, 2)  # (B, H, S, d/H)
+    k, v = (t.view(B, M, heads, d // heads).transpose(1, 2) for t in (k, v))  # (B, H, M, d/H)
+    return F.scaled_dot_product_attention(q, k, v).transpose(1, 2).reshape(B, S, d)
+
+
+def decoder_layer_inference(layer: nn.TransformerDecoderLayer, x: torch.Tensor, memory: torch.Tensor,
+                            packed: dict | None = None) -> torch.Tensor:
+    """The same pre-norm decoder layer as ``layer(x, memory)`` in eval mode without padding masks, in plain
+    functional ops, optionally on prepacked weights (the VAE decoder's frames reading the latent tokens)."""
+    d = x.shape[-1]
+    pk = packed or {}
+    attn, cross = layer.self_attn, layer.multihead_attn
+    h = F.layer_norm(x, (d,), layer.norm1.weight, layer.norm1.bias, layer.norm1.eps)
+    q, k, v = _linear(h, attn.in_proj_weight, attn.in_proj_bias, pk.get("in")).chunk(3, dim=-1)  # each (B, S, d)
+    x = x + _linear(_attention(q, k, v, attn.num_heads), attn.out_proj.weight, attn.out_proj.bias, pk.get("out"))
+    h = F.layer_norm(x, (d,), layer.norm2.weight, layer.norm2.bias, layer.norm2.eps)
+    q = _linear(h, cross.in_proj_weight[:d], cross.in_proj_bias[:d], pk.get("cross_q"))  # (B, S, d)
+    k, v = _linear(memory, cross.in_proj_weight[d:], cross.in_proj_bias[d:], pk.get("cross_kv")).chunk(2, dim=-1)
+    x = x + _linear(_attention(q, k, v, cross.num_heads), cross.out_proj.weight, cross.out_proj.bias,
+                    pk.get("cross_out"))
+    h = F.layer_norm(x, (d,), layer.norm3.weight, layer.norm3.bias, layer.norm3.eps)
+    h = _linear(h, layer.linear1.weight, layer.linear1.bias, pk.get("ff1"), gelu=True)  # (B, S, ff)
+    return x + _linear(h, layer.linear2.weight, layer.linear2.bias, pk.get("ff2"))

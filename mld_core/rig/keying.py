@@ -242,3 +242,34 @@ def take_keys(take: Take, rig: RigRest, bone_map: bm.BoneMap, settings: Retarget
                                contacts=take.contacts if settings.foot_lock else None, rotation_modes=per_bone,
                                fps=take.fps)
     return baked
+
+
+@dataclass(frozen=True)
+class KeyPlan:
+    """Everything keying needs from an armature, read once on Blender's main thread (``key_takes.read_plan``), so
+    that the keys themselves can be computed anywhere (the add-on's worker thread, for Live Preview)."""
+
+    rig: RigRest
+    bone_map: bm.BoneMap
+    settings: RetargetSettings
+    fps: float
+    frame_start: float
+    exact: bool  # the canonical armature's exact road
+    current_modes: Mapping[str, str] | None
+    exact_locations: bool
+
+
+def plan_takes(takes: Sequence, plan: KeyPlan) -> list:
+    """[(take, keys, seconds)] for generated takes (the add-on's generation.Take: joints, local_quats, fps and
+    foot contacts) under ``plan``; raises what take_keys raises."""
+    import time
+
+    planned = []
+    for take in takes:
+        t0 = time.perf_counter()
+        contacts = take_contacts(take) if plan.settings.foot_lock else None
+        road_take = Take(take.joints, take.local_quats, contacts, take.fps)
+        keys = take_keys(road_take, plan.rig, plan.bone_map, plan.settings, fps=plan.fps, frame_start=plan.frame_start,
+                         exact=plan.exact, current_modes=plan.current_modes, exact_locations=plan.exact_locations)
+        planned.append((take, keys, time.perf_counter() - t0))
+    return planned

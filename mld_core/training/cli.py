@@ -161,6 +161,35 @@ def _denoiser_config(args, over: dict):
     return cfg
 
 
+def run_draft(args) -> int:
+    from mld_core.checkpoint import DEFAULT_MODEL_DIR
+    from mld_core.training.draft import DraftTrainConfig, install_draft, train_draft
+
+    _check_data(args.data)
+    teacher = Path(args.teacher) if args.teacher else DEFAULT_MODEL_DIR
+    if not (teacher / "config.json").is_file():
+        raise UsageError(f"--teacher {teacher} is not a model folder (no config.json)")
+    over = _overrides(args, DraftTrainConfig)
+
+    def make_config():
+        cfg = DraftTrainConfig(data=args.data, teacher=str(teacher), out=str(args.out), seed=args.seed,
+                               threads=args.threads, steps=args.steps, minutes=args.minutes, **over)
+        cfg.lr = args.lr or cfg.lr
+        cfg.bf16 = cfg.bf16 or args.bf16
+        return cfg
+
+    code = _run(train_draft, make_config, args.out, args.resume)
+    if args.install:
+        from mld_core.checkpoint import CheckpointError
+
+        try:
+            install_draft(Path(args.out), teacher)
+        except (CheckpointError, ValueError) as exc:
+            raise UsageError(str(exc)) from None
+        print(f"installed the Draft denoiser into {teacher}")
+    return code
+
+
 def register(groups) -> None:
     p = groups["train"].add_parser("vae", help="stage 1: the motion VAE")
     _common(p)
@@ -172,3 +201,18 @@ def register(groups) -> None:
     p.add_argument("--cond", choices=("text", "action", "none"), default="text")
     p.add_argument("--cross-attention", action="store_true", help="condition through cross-attention, not concatenation")
     p.set_defaults(func=run_denoiser)
+    p = groups["train"].add_parser("draft", help="Draft mode: distil a model's denoiser into a few-step consistency model")
+    p.add_argument("--data", required=True, help="the HumanML3D-format folder the teacher was trained on")
+    p.add_argument("--teacher", default=None, help="the model folder to distil (default: the bundled model)")
+    p.add_argument("--out", required=True, help="the run folder (the teacher's folder plus draft.safetensors)")
+    p.add_argument("--install", action="store_true",
+                   help="when done, copy the Draft denoiser (fp16) and its config into the teacher's folder")
+    for flag in ("--resume", "--bf16"):
+        p.add_argument(flag, action="store_true")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
+    p.add_argument("--steps", type=int, default=None, help="stop after this many optimiser steps")
+    p.add_argument("--minutes", type=float, default=None, help="stop after this much wall time")
+    p.add_argument("--lr", type=float, default=None)
+    p.add_argument("--config", type=Path, default=None, help="JSON overrides of DraftTrainConfig")
+    p.set_defaults(func=run_draft)

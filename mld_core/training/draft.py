@@ -1,0 +1,196 @@
+"""Draft mode: distil a model folder's denoiser into a latent consistency model (LCM; MotionLCM's recipe).
+
+    python -m mld_core train draft --data DIR --teacher MODEL_DIR --out RUN [--minutes 60] [--resume]
+
+The student starts as a copy of the teacher with one more input, the guidance scale w (a zero-initialised MLP added
+to the timestep embedding), so guided sampling costs one pass instead of two. Each step draws a real latent z_0,
+noises it to a timestep t of the 50-point DDIM grid, lets the teacher take one guided DDIM step to t - skip, and
+pulls the student's clean estimate at (z_t, t) towards the EMA target's estimate at (z_{t-skip}, t - skip):
+
+    L = huber(f_student(z_t, t, c, w) - f_target(DDIM_teacher(z_t -> z_{t-skip}; w), t - skip, c, w))
+
+The run folder is a copy of the teacher's model folder plus ``draft.safetensors`` and a ``draft`` section in
+config.json, so it samples with ``pipe(..., draft=True)``; ``--install MODEL_DIR`` copies those two into a folder.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import shutil
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from mld_core.checkpoint import DraftConfig, load_config, load_weights, save_json, save_weights
+from mld_core.models.denoiser import LatentDenoiser
+from mld_core.models.text_encoder import TextEmbedding
+from mld_core.models.vae import MotionVAE
+from mld_core.schedulers import LCMScheduler
+from mld_core.training.common import (Budget, balanced_weights, load_train_state, lr_factor, save_train_state, set_lr,
+                                     setup_torch)
+from mld_core.training.denoiser import LATENT_CACHE, TEXT_CACHE, _cached, embed_captions, encode_latents, text_units
+from mld_core.training.vae import prepare_run_dir
+
+DRAFT_WEIGHTS = "draft.safetensors"
+
+
+@dataclass
+class DraftTrainConfig:
+    data: str = ""
+    teacher: str = ""  # a model folder with a text-conditioned denoiser
+    out: str = ""
+    seed: int = 0
+    threads: int | None = None
+    steps: int | None = None
+    minutes: float | None = None
+    batch_size: int = 128
+    lr: float = 1e-4
+    decay_start: float = 0.5
+    ema_decay: float = 0.95  # the target network (LCM's target_unet)
+    guidance_min: float = 3.0
+    guidance_max: float = 5.0
+    original_steps: int = 50
+    huber_c: float = 0.001
+    draft_steps: int = 2  # the Draft's default number of steps, written into config.json
+    crops_per_clip: int = 6
+    balance_power: float = 0.7
+    save_every: int = 250
+    bf16: bool = False
+    caches_from: str | None = None  # a denoiser run of the same VAE and data: reuse its latent and caption caches
+
+
+def huber(diff: torch.Tensor, c: float) -> torch.Tensor:
+    """Pseudo-Huber loss per element: sqrt(d^2 + c^2) - c."""
+    return (diff.float() ** 2 + c**2).sqrt() - c
+
+
+def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
+    from mld_core.data.dataset import load_split
+    from mld_core.models.text_encoder import load_text_encoder
+
+    out, teacher_dir = Path(cfg.out), Path(cfg.teacher)
+    base = load_config(teacher_dir)
+    if base.denoiser is None or base.denoiser.cond != "text":
+        raise ValueError(f"--teacher {teacher_dir} has no text-conditioned denoiser to distil")
+    if not 0 < cfg.guidance_min <= cfg.guidance_max:
+        raise ValueError("guidance_min must be above 0 and at most guidance_max")
+    prepare_run_dir(out, resume)
+    setup_torch(cfg.seed, cfg.threads)
+    for name in (LATENT_CACHE, TEXT_CACHE) if cfg.caches_from and not resume else ():
+        if (Path(cfg.caches_from) / name).is_file():
+            shutil.copyfile(Path(cfg.caches_from) / name, out / name)
+
+    # 1. Real latents z_0 of the training split and caption embeddings (cached; the teacher's VAE and normalisation).
+    vae = MotionVAE(base.vae)
+    load_weights(teacher_dir / "vae.safetensors", vae)
+    mean, std = base.mean_std
+    units = text_units(load_split(cfg.data, "train"), base.fps)
+    if not units:
+        raise ValueError(f"{cfg.data}: the train split is empty")
+    lat = _cached(out / LATENT_CACHE, lambda: encode_latents(vae, units, mean, std, cfg.crops_per_clip,
+                                                             base.min_frames, base.max_frames, cfg.seed))
+    del vae
+    z0_all = (lat["mu"] - base.latent_mean) * base.latent_scale  # (N, n, d)
+    lengths, unit_of = lat["lengths"], lat["unit"]
+    captions = sorted({c for u in units for c in u.captions})
+    caption_index = {c: i for i, c in enumerate(captions)}
+    unit_captions = [np.array([caption_index[c] for c in u.captions]) for u in units]
+    text = _cached(out / TEXT_CACHE, lambda: embed_captions(load_text_encoder(base.text_encoder), captions,
+                                                            base.denoiser.max_text_tokens))
+
+    # 2. Teacher (frozen), student (the teacher plus a guidance input), its EMA target.
+    teacher = LatentDenoiser(base.denoiser)
+    load_weights(teacher_dir / "denoiser.safetensors", teacher)
+    teacher.eval().requires_grad_(False)
+    draft = DraftConfig(denoiser=copy.deepcopy(base.denoiser), num_inference_steps=cfg.draft_steps,
+                        original_steps=cfg.original_steps)
+    draft.denoiser.guidance_input = True
+    student = LatentDenoiser(draft.denoiser)
+    student.load_state_dict(teacher.state_dict(), strict=False)  # all but the new guidance MLP
+    target = copy.deepcopy(student).requires_grad_(False)
+    opt = torch.optim.AdamW(student.parameters(), lr=cfg.lr, weight_decay=0.0)
+    step, _ = load_train_state(out, student, opt) if resume else (0, {})
+    if resume and (out / DRAFT_WEIGHTS).is_file():
+        load_weights(out / DRAFT_WEIGHTS, target)
+    lcm = LCMScheduler(base.scheduler, cfg.original_steps, draft.timestep_scaling, draft.sigma_data)
+    weights = balanced_weights([units[u].label for u in unit_of.tolist()], cfg.balance_power)
+    rng = np.random.default_rng(cfg.seed + step)
+
+    config = copy.deepcopy(base)
+    config.draft = draft
+    config.provenance = {**base.provenance, "draft_training": asdict(cfg)}
+    if not resume:
+        for name in ("vae.safetensors", "denoiser.safetensors", "coverage_index.npz", "MODEL_CARD.md"):
+            if (teacher_dir / name).is_file():
+                shutil.copyfile(teacher_dir / name, out / name)
+    save_json(out / "train_config.json", {**asdict(cfg), "stage": "draft"})
+
+    def save():
+        config.provenance["draft_steps"] = step
+        save_weights(out / DRAFT_WEIGHTS, target)
+        save_json(out / "config.json", config.to_dict())
+        save_train_state(out, student, opt, step)
+
+    # 3. Consistency distillation.
+    budget = Budget(cfg.steps, cfg.minutes)
+    log = open(out / "log.jsonl", "a")
+    student.train()
+    running, autocast = None, dict(device_type="cpu", dtype=torch.bfloat16, enabled=cfg.bf16)
+    while not budget.done(step):
+        set_lr(opt, cfg.lr * lr_factor(budget.progress(step), cfg.decay_start))
+        idx = torch.from_numpy(rng.choice(len(z0_all), size=cfg.batch_size, p=weights))
+        z0, L = z0_all[idx], lengths[idx]
+        B = len(idx)
+        cap = torch.tensor([int(rng.choice(unit_captions[u])) for u in unit_of[idx].tolist()])
+        emb = TextEmbedding(pooled=text["pooled"][cap], tokens=text["tokens"][cap].float(), mask=text["mask"][cap])
+        t = lcm.grid[torch.randint(1, len(lcm.grid), (B,))]  # (B,) each with t - skip on the grid
+        w = cfg.guidance_min + (cfg.guidance_max - cfg.guidance_min) * torch.rand(B)
+        z_t = lcm.add_noise(z0, torch.randn_like(z0), t)
+        with torch.no_grad(), torch.autocast(**autocast):
+            cond = teacher.condition_tokens(B, text=emb)
+            eps_null, eps_cond = teacher(torch.cat([z_t, z_t]), torch.cat([t, t]),
+                                         torch.cat([teacher.null_tokens(B), cond]), torch.cat([L, L])).float().chunk(2)
+            z_prev = lcm.teacher_step(eps_null + w[:, None, None] * (eps_cond - eps_null), t, z_t)
+            t_prev = t - lcm.skip
+            goal = lcm.denoised(target(z_prev, t_prev, target.condition_tokens(B, text=emb), L, w).float(),
+                                t_prev, z_prev)
+        with torch.autocast(**autocast):
+            eps = student(z_t, t, student.condition_tokens(B, text=emb), L, w)
+        loss = huber(lcm.denoised(eps.float(), t, z_t) - goal, cfg.huber_c).mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(student.parameters(), 1.0)
+        opt.step()
+        with torch.no_grad():
+            for pt, p in zip(target.parameters(), student.parameters()):
+                pt.lerp_(p, 1 - cfg.ema_decay)
+        step += 1
+        running = loss.item() if running is None else 0.98 * running + 0.02 * loss.item()
+        if step % cfg.save_every == 0 or budget.done(step):
+            log.write(json.dumps({"step": step, "loss": running, "minutes": round(budget.minutes, 2)}) + "\n")
+            log.flush()
+            save()
+    log.close()
+    if not (out / "config.json").is_file():
+        save()
+    return out
+
+
+def install_draft(run: Path, model_dir: Path) -> None:
+    """Copy a distilled Draft (draft.safetensors, fp16, and config.json's ``draft``) into a model folder whose VAE,
+    denoiser and normalisation it was distilled from."""
+    run_cfg, cfg = load_config(run), load_config(model_dir)
+    if run_cfg.draft is None:
+        raise ValueError(f"{run} has no Draft denoiser")
+    if (run_cfg.latent_mean, run_cfg.latent_scale) != (cfg.latent_mean, cfg.latent_scale):
+        raise ValueError(f"{run} was distilled from another model than {model_dir} (latent normalisation differs)")
+    student = LatentDenoiser(run_cfg.draft.denoiser)
+    load_weights(Path(run) / DRAFT_WEIGHTS, student)
+    save_weights(Path(model_dir) / DRAFT_WEIGHTS, student, torch.float16)
+    cfg.draft = run_cfg.draft
+    cfg.provenance["draft_training"] = run_cfg.provenance.get("draft_training", {})
+    cfg.provenance["draft_steps"] = run_cfg.provenance.get("draft_steps", 0)
+    save_json(Path(model_dir) / "config.json", cfg.to_dict())

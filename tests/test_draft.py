@@ -1,0 +1,173 @@
+"""Draft mode: the consistency scheduler, the Draft denoiser in the pipeline, the text cache and the faster decode."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from mld_core.checkpoint import CheckpointError
+from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser
+from mld_core.models.transformer import TransformerConfig
+from mld_core.schedulers import DDIMScheduler, LCMScheduler
+from mld_core.testing import tiny_pipeline
+
+
+@pytest.fixture(scope="module")
+def pipe(tmp_path_factory):
+    return tiny_pipeline(tmp_path_factory.mktemp("draft") / "m", draft=True)
+
+
+# -- the scheduler ----------------------------------------------------------------------------------------------
+def test_lcm_timesteps_come_from_the_50_step_grid():
+    s = LCMScheduler()
+    assert s.skip == 20 and s.grid[0] == 1 and s.grid[-1] == 981
+    s.set_timesteps(1)
+    assert s.timesteps.tolist() == [981]
+    s.set_timesteps(4)
+    assert s.timesteps.tolist() == [981, 741, 481, 241]
+    with pytest.raises(ValueError, match="1..50"):
+        s.set_timesteps(51)
+
+
+def test_consistency_function_is_the_identity_at_t0_and_the_x0_estimate_at_large_t():
+    s = LCMScheduler()
+    x, eps = torch.randn(3, 2, 4), torch.randn(3, 2, 4)
+    assert torch.allclose(s.denoised(eps, torch.zeros(3, dtype=torch.long), x), x, atol=1e-6)
+    t = torch.tensor([981, 981, 981])
+    a = s.alphas_cumprod[981]
+    x0 = (x - (1 - a).sqrt() * eps) / a.sqrt()
+    assert torch.allclose(s.denoised(eps, t, x), x0, atol=1e-5)
+
+
+def test_teacher_step_is_a_ddim_step_on_the_50_step_grid():
+    lcm, ddim = LCMScheduler(), DDIMScheduler()
+    ddim.set_timesteps(50)
+    x, eps = torch.randn(1, 2, 4), torch.randn(1, 2, 4)
+    expected, _ = ddim.step(eps, 481, x)
+    assert torch.allclose(lcm.teacher_step(eps, torch.tensor([481]), x), expected, atol=1e-6)
+
+
+def test_multistep_renoises_between_steps_and_returns_the_estimate_at_the_last():
+    s = LCMScheduler()
+    s.set_timesteps(2)
+    x, eps, noise = torch.randn(1, 2, 4), torch.randn(1, 2, 4), torch.randn(1, 2, 4)
+    nxt, est = s.step(eps, 981, x, noise)
+    a = s.alphas_cumprod[481]
+    assert torch.allclose(nxt, a.sqrt() * est + (1 - a).sqrt() * noise, atol=1e-6)
+    last, est2 = s.step(eps, 481, nxt)
+    assert torch.equal(last, est2)
+    with pytest.raises(ValueError, match="noise"):
+        s.step(eps, 981, x)
+
+
+# -- the Draft denoiser ------------------------------------------------------------------------------------------
+def test_a_fresh_student_with_a_guidance_input_predicts_what_its_teacher_does():
+    block = TransformerConfig(dim=32, heads=2, ff_dim=64, layers=1, dropout=0.0)
+    cfg = DenoiserConfig(latent_tokens=1, latent_dim=32, cond="none", transformer=block)
+    torch.manual_seed(0)
+    teacher = LatentDenoiser(cfg).eval()
+    student = LatentDenoiser(DenoiserConfig(**{**cfg.to_dict(), "guidance_input": True})).eval()
+    student.load_state_dict(teacher.state_dict(), strict=False)
+    z, t, L = torch.randn(2, 1, 32), torch.tensor([5, 900]), torch.tensor([40, 60])
+    cond = teacher.null_tokens(2)
+    with torch.no_grad():
+        assert torch.allclose(student(z, t, cond, L, guidance=torch.tensor([2.0, 7.0])), teacher(z, t, cond, L),
+                              atol=1e-6)
+    with pytest.raises(ValueError, match="guidance"):
+        student(z, t, cond, L)
+
+
+def test_draft_rows_equal_single_runs_and_guidance_steers(pipe):
+    both = pipe(["a person walks", "a person waves"], seconds=[1.5, 2.0], seed=[4, 9], draft=True)
+    one = pipe(["a person waves"], seconds=2.0, seed=9, draft=True)
+    assert np.allclose(both.joints[1, :40], one.joints[0], atol=1e-5)
+    other = pipe(["a person waves"], seconds=2.0, seed=9, draft=True, guidance_scale=8.0)
+    assert not np.allclose(other.joints, one.joints, atol=1e-4)
+    again = pipe(["a person waves"], seconds=2.0, seed=9, draft=True)
+    assert np.array_equal(again.joints, one.joints)
+
+
+def test_draft_steps_default_to_the_config_and_are_bounded_by_the_grid(pipe):
+    calls = []
+    pipe("a person walks", 1.5, draft=True, callback=lambda k, n: calls.append(n))
+    assert calls == [2, 2]  # config draft.num_inference_steps
+    calls.clear()
+    pipe("a person walks", 1.5, draft=True, num_inference_steps=1, callback=lambda k, n: calls.append(n))
+    assert calls == [1]
+    with pytest.raises(ValueError, match="num_inference_steps"):
+        pipe("a person walks", 1.5, draft=True, num_inference_steps=51)
+
+
+def test_draft_differs_from_final_and_a_model_without_a_draft_says_so(pipe, tmp_path):
+    final = pipe("a person walks", 1.5, seed=1)
+    draft = pipe("a person walks", 1.5, seed=1, draft=True)
+    assert not np.allclose(final.joints, draft.joints)
+    plain = tiny_pipeline(tmp_path / "plain")
+    assert plain.draft_denoiser is None
+    with pytest.raises(CheckpointError, match="no Draft denoiser"):
+        plain("a person walks", 1.5, draft=True)
+
+
+def test_a_bad_draft_section_is_a_checkpoint_error(tmp_path):
+    import json
+
+    from mld_core.checkpoint import load_config
+    from mld_core.testing import tiny_model
+
+    folder = tiny_model(tmp_path / "m", draft=True)
+    data = json.loads((folder / "config.json").read_text())
+    data["draft"]["num_inference_steps"] = 0
+    (folder / "config.json").write_text(json.dumps(data))
+    with pytest.raises(CheckpointError, match="draft.num_inference_steps"):
+        load_config(folder)
+    (folder / "draft.safetensors").unlink()
+    data["draft"]["num_inference_steps"] = 2
+    (folder / "config.json").write_text(json.dumps(data))
+    from mld_core.pipeline import MLDPipeline
+
+    with pytest.raises(CheckpointError, match="draft.safetensors"):
+        MLDPipeline.from_pretrained(folder)
+
+
+# -- the text cache and the faster decode ----------------------------------------------------------------------
+def test_each_prompt_is_encoded_once_and_the_cache_is_bounded(pipe, monkeypatch):
+    seen = []
+    encoder = pipe.text_encoder
+    real = type(encoder).forward
+
+    def counting(self, texts):
+        seen.extend(texts)
+        return real(self, texts)
+
+    pipe._text_cache.clear()
+    first = pipe(["walks forward", "turns left", "walks forward"], 1.5, seed=0)
+    monkeypatch.setattr(type(encoder), "forward", counting)
+    again = pipe(["turns left", "walks forward"], 1.5, seed=[0, 0])
+    assert seen == [] and np.allclose(again.joints[1], first.joints[0], atol=1e-5)
+    pipe(["sits down"], 1.5)
+    assert seen == ["sits down"]
+    monkeypatch.setattr(pipe, "TEXT_CACHE_SIZE", 2)
+    pipe(["jumps"], 1.5)
+    assert list(pipe._text_cache) == ["sits down", "jumps"]
+
+
+def test_packed_decoding_equals_the_masked_module_path(pipe):
+    z = torch.randn(2, 1, 32)
+    with torch.inference_mode():
+        batch = pipe.vae.decode(z, torch.tensor([30, 22]))  # padded: the module path
+        single = pipe.vae.decode(z[1:], torch.tensor([22]))  # no padding: the packed functional path
+    assert torch.allclose(batch[1, :22], single[0], atol=1e-5)
+    assert (batch[1, 22:] == 0).all()
+
+
+def test_packed_text_encoder_equals_the_plain_one():
+    from mld_core.models.text_encoder import MiniLMEncoder
+
+    plain = MiniLMEncoder.random(seed=3, vocab_path="builtin")
+    packed = MiniLMEncoder.random(seed=3, vocab_path="builtin")
+    if not packed.pack_for_cpu_inference():
+        pytest.skip("this torch build has no oneDNN prepacked linear ops")
+    texts = ["a person walks forward", "waves"]
+    a, b = plain(texts), packed(texts)
+    assert torch.allclose(a.tokens, b.tokens, atol=1e-5) and torch.allclose(a.pooled, b.pooled, atol=1e-6)
