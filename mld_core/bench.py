@@ -72,7 +72,7 @@ def _prompts(n: int) -> list[str]:
 
 def time_pipeline(pipe, prompts: Sequence[str], *, seconds: float = 4.0, batch_size: int = 1,
                   num_inference_steps: int | None = None, guidance_scale: float | None = None,
-                  warmup: int = 1, progress: bool = False) -> dict:
+                  warmup: int = 1, progress: bool = False, draft: bool = False) -> dict:
     """AITS of ``pipe`` over ``prompts`` in batches of ``batch_size``.
 
     Returns {"aits_s": text + diffusion + decoding per prompt (from the pipeline's timings, or wall time
@@ -89,9 +89,14 @@ def time_pipeline(pipe, prompts: Sequence[str], *, seconds: float = 4.0, batch_s
         kw["num_inference_steps"] = num_inference_steps
     if guidance_scale is not None:
         kw["guidance_scale"] = guidance_scale
+    if draft:
+        kw["draft"] = True
     batches = [prompts[i : i + batch_size] for i in range(0, len(prompts), batch_size)]
     for _ in range(warmup):
         pipe(batches[0], seconds=seconds, seed=0, **kw)
+    cache = getattr(pipe, "_text_cache", None)
+    if cache is not None:  # every prompt timed cold: its text is encoded
+        cache.clear()
     parts = {"condition_s": 0.0, "diffusion_s": 0.0, "decode_s": 0.0}
     timed, wall = 0.0, 0.0
     for k, batch in enumerate(tqdm(batches, desc=f"MLD batch {batch_size}", leave=False, disable=not progress)):
@@ -243,6 +248,10 @@ class _TrainMode:
     def __enter__(self):
         self.saved = [(sub, sub.training) for m in self.modules for sub in m.modules()]
         self.packed = [(sub, sub._packed) for sub, _ in self.saved if isinstance(getattr(sub, "_packed", None), dict)]
+        # the text encoder's layers keep prepacked weights too (oneDNN ops the counter does not see): plain ops here
+        self.text_packed = [(sub, sub.packed) for sub, _ in self.saved if isinstance(getattr(sub, "packed", None), dict)]
+        for sub, _ in self.text_packed:
+            sub.packed = {}
         for m in self.modules:
             m.train()
 
@@ -251,13 +260,18 @@ class _TrainMode:
             sub.training = mode
         for sub, packed in self.packed:  # train() drops prepacked inference weights; the weights did not change
             sub._packed = packed
+        for sub, packed in self.text_packed:
+            sub.packed = packed
 
 
-def mld_flops(pipe, prompt: str, frames: int, steps: int, guidance_scale: float | None = None) -> dict:
-    """FLOPs for one sample: condition (text encoder + condition tokens), steps x denoiser, VAE decode."""
-    den = pipe.denoiser
+def mld_flops(pipe, prompt: str, frames: int, steps: int, guidance_scale: float | None = None,
+              draft: bool = False) -> dict:
+    """FLOPs for one sample: condition (text encoder + condition tokens), steps x denoiser, VAE decode. ``draft``:
+    the Draft denoiser, one pass per step (the guidance scale is its input)."""
+    den = pipe.draft_denoiser if draft else pipe.denoiser
     s = float(pipe.config.guidance_scale if guidance_scale is None else guidance_scale)
-    use_guidance = s != 1.0 and den.config.cond != "none"
+    use_guidance = s != 1.0 and den.config.cond != "none" and not draft
+    scale = {"guidance": torch.full((1,), s)} if draft else {}
     n, d = pipe.config.vae.latent_tokens, pipe.config.vae.latent_dim
     lengths = torch.tensor([frames])
     with _TrainMode(den, pipe.vae, pipe.text_encoder):
@@ -278,7 +292,7 @@ def mld_flops(pipe, prompt: str, frames: int, steps: int, guidance_scale: float 
         rows = 2 if use_guidance else 1
         dtype = next(den.parameters()).dtype  # fp32, or bf16 with --precision bf16
         z = torch.randn(rows, n, d, dtype=dtype)
-        f_step = _count_flops(lambda: den(z, torch.full((rows,), 500), cond.to(dtype), lengths.repeat(rows)))
+        f_step = _count_flops(lambda: den(z, torch.full((rows,), 500), cond.to(dtype), lengths.repeat(rows), **scale))
         f_dec = _count_flops(lambda: pipe.vae.decode(torch.randn(1, n, d), lengths))
     return {"condition": f_cond, "per_step": f_step, "steps": steps, "decode": f_dec,
             "total": f_cond + steps * f_step + f_dec}
@@ -348,6 +362,14 @@ def run_bench(model=None, *, baseline: str | None = None, prompts: int = 32, sec
     mld["batch32"] = time_pipeline(timed_pipe, texts, seconds=seconds, batch_size=32, progress=progress, **mld_kw)
     mld["flops"] = mld_flops(pipe, texts[0], frames, steps, guidance_scale)
     result["methods"].append(mld)
+    if getattr(pipe, "draft_denoiser", None) is not None and cond == "text":
+        d_steps = pipe.config.draft.num_inference_steps
+        draft = {"name": "MLD Draft", "scheduler": f"LCM-{d_steps}", "steps": d_steps, "trained": True}
+        kw = {"guidance_scale": guidance_scale, "draft": True}
+        draft["batch1"] = time_pipeline(pipe, texts, seconds=seconds, batch_size=1, progress=progress, **kw)
+        draft["batch32"] = time_pipeline(pipe, texts, seconds=seconds, batch_size=32, progress=progress, **kw)
+        draft["flops"] = mld_flops(pipe, texts[0], frames, d_steps, guidance_scale, draft=True)
+        result["methods"].append(draft)
 
     if baseline == "raw":
         raw = RawMotionBaseline(pipe, frames)
@@ -418,6 +440,10 @@ def _gflops(flops: float) -> str:
     return f"{g:.2f}" if g >= 0.1 else f"{g:.3g}"
 
 
+def _ratio(x: float) -> str:
+    return f"{x:.2f}" if x < 1 else f"{x:.1f}"
+
+
 def format_bench(result: dict) -> str:
     head = ["method", "sampler", "AITS b1 (s)", "AITS b32 (s)", "x MLD b1", "x MLD b32", "GFLOPs/sample",
             "x MLD FLOPs"]
@@ -434,8 +460,8 @@ def format_bench(result: dict) -> str:
         if b32.get("extrapolated"):
             notes.append(f"\u2020 {m['name']} batch 32: {b32['steps_timed']} of {b32['steps']} steps timed, "
                          f"diffusion time extrapolated per step")
-        rows.append([name, m["scheduler"], c1, c32, f"{m['ratio_batch1']:.1f}", f"{m['ratio_batch32']:.1f}",
-                     _gflops(m['flops']['total']), f"{m['flops_ratio']:.1f}"])
+        rows.append([name, m["scheduler"], c1, c32, _ratio(m["ratio_batch1"]), _ratio(m["ratio_batch32"]),
+                     _gflops(m['flops']['total']), _ratio(m["flops_ratio"])])
     widths = [max(len(str(r[i])) for r in [head] + rows) for i in range(len(head))]
     fmt = lambda r: "| " + " | ".join(str(c).ljust(w) for c, w in zip(r, widths)) + " |"  # noqa: E731
     lines = [f"AITS = text encoding + diffusion + decoding per prompt; {result['frames']} frames "

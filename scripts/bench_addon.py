@@ -1,4 +1,4 @@
-"""Benchmark the add-on in bpy: model load, Generate -> keys on the canonical rig, key writing alone.
+"""Benchmark the add-on in bpy: model load, Generate -> keys on the canonical rig (Final and Draft), key writing.
 
     python scripts/bench_addon.py [--model DIR] [--seconds 4] [--steps 50] [--repeat 5] [--threads N]
 
@@ -95,6 +95,12 @@ def main(argv=None) -> int:
         bpy.ops.mld.generate()
 
         gen_med, gen_min = median_time(lambda: bpy.ops.mld.generate(), args.repeat, "generate")
+        draft_med = draft_min = None
+        if getattr(pipe, "draft_denoiser", None) is not None:
+            s.mode = "DRAFT"
+            bpy.ops.mld.generate()
+            draft_med, draft_min = median_time(lambda: bpy.ops.mld.generate(), args.repeat, "draft")
+            s.mode = "FINAL"
 
         # split: pipeline alone, rotations, pose math, key writing
         out = pipe([s.prompt], seconds=args.seconds, num_inference_steps=args.steps, seed=0)
@@ -138,6 +144,11 @@ def main(argv=None) -> int:
     print(f"{'import bpy':38s}{t_bpy:9.3f}")
     print(f"{'model load (once; target <= 2 s)':38s}{t_load:9.3f} {'':9s} {c['load']:9.3f}")
     print(f"{'Generate -> keys (target <= 0.5 s)':38s}{gen_med:9.3f} {gen_min:9.3f} {c['generate']:9.3f}")
+    if draft_med is not None:
+        print(f"{'Generate -> keys, Draft':38s}{draft_med:9.3f} {draft_min:9.3f} {c['draft']:9.3f}"
+              f"   ({draft_med / gen_med:.2f} x Final)")
+    else:
+        print("Generate -> keys, Draft: the model has no Draft denoiser")
     print(f"{'  pipeline (text, DDIM, decode)':38s}{pipe_med:9.3f} {'':9s} {c['pipeline']:9.3f}")
     print(f"{'  features -> rotations':38s}{rot_med:9.4f} {'':9s} {c['rotations']:9.4f}")
     print(f"{'  pose channels (+ resample)':38s}{pose_med:9.4f} {'':9s} {c['pose']:9.4f}")
