@@ -397,3 +397,25 @@ def test_single_frame_take(fixtures, golden):
     result = rt.retarget(golden[:1], rig, bmap.joints)
     assert result.rotations.shape == (1, len(bmap.joints), 4)
     assert np.all(np.isfinite(result.root_location))
+
+
+def test_a_shorter_leg_bends_like_the_source_instead_of_snapping_straight(takes):
+    """A rig whose left leg is 2% shorter (its shin 4%): the take is scaled by the mean leg length, so the short
+    leg's ankle target was out of reach where the source's leg is nearly straight, and its knee locked. Its foot is
+    now drawn up the leg to the source's extension: the knee bends as the source's does, feet never sink."""
+    offsets = np.array(sk.REFERENCE_OFFSETS, dtype=np.float64)
+    offsets[J["left_ankle"]] *= 0.96
+    rig = rt.canonical_rig(offsets)
+    joints = {n: n for n in rig.names}
+    for clip in ("dataset-2_walk-turn-left_normal_027", "dataset-2_wave-right-hand_normal_026"):
+        take = takes[clip].copy()
+        stretch = take[:, J["left_ankle"]] - take[:, J["left_knee"]]
+        take[:, J["left_ankle"]] += 0.05 * stretch  # a straighter source leg: the short rig leg cannot reach it
+        take[:, J["left_foot"]] += 0.05 * stretch
+        result = rt.retarget(take, rig, joints)
+        fid = fidelity.fidelity(result)
+        wj, src = result.world_joints(), result.source_world
+        bend_rig = fidelity.knee_bend_deg(wj["left_hip"], wj["left_knee"], wj["left_ankle"])
+        bend_src = fidelity.knee_bend_deg(src[:, J["left_hip"]], src[:, J["left_knee"]], src[:, J["left_ankle"]])
+        assert np.mean(np.abs(bend_rig - bend_src)) < 1.0, (clip, np.mean(np.abs(bend_rig - bend_src)))
+        assert fid["locked_knee_frac"] == 0.0 and fid["sink_cm"] < 1e-6

@@ -82,6 +82,10 @@ def fidelity(result: RetargetResult, target_joints: Mapping[str, np.ndarray] | N
     if angles:  # how far each limb bone points from the source's: the pose as an animator reads it
         out["limb_dir_deg"] = float(np.mean([a.mean() for a in angles]))
         out["limb_dir_deg_max_bone"] = float(max(a.mean() for a in angles))
+    locked = [_locked_knee(wj, src, side) for side in ("left", "right")
+              if all(f"{side}_{j}" in wj for j in ("hip", "knee", "ankle"))]
+    if locked:  # a knee snapped straight where the source's bends: legs of uneven length, a foot out of reach
+        out["locked_knee_frac"] = float(max(locked))
     feet = [j for j in FOOT_JOINTS if j in wj]
     standing = standing_heights(result.rig, dict(zip(result.joints, result.bones)))
     floor = result.rig.object_matrix[2, 3]
@@ -117,3 +121,19 @@ def fidelity(result: RetargetResult, target_joints: Mapping[str, np.ndarray] | N
     else:
         out["travel_angle_deg"] = 0.0
     return out
+
+
+LOCKED_DEG, BENT_DEG = 2.0, 5.0
+
+
+def knee_bend_deg(hip: np.ndarray, knee: np.ndarray, ankle: np.ndarray) -> np.ndarray:
+    """(T,) degrees between thigh and shin: 0 = the leg straight."""
+    return _direction_error_deg(knee - hip, ankle - knee)
+
+
+def _locked_knee(wj: Mapping[str, np.ndarray], src: np.ndarray, side: str) -> float:
+    """Share of frames in which the rig's knee on ``side`` is straight (< 2 deg) while the source's bends (> 5)."""
+    J = JOINT_INDEX
+    rig = knee_bend_deg(wj[f"{side}_hip"], wj[f"{side}_knee"], wj[f"{side}_ankle"])
+    source = knee_bend_deg(*(src[:, J[f"{side}_{j}"]] for j in ("hip", "knee", "ankle")))
+    return float(np.mean((rig < LOCKED_DEG) & (source > BENT_DEG)))

@@ -829,7 +829,7 @@ class _Solve:
             pole = self.desired.get(mid, goal) - head
         elif joint in ("left_hip", "right_hip"):
             # Feet go where the scaled source puts them (no sinking, no sliding); the leg bends to reach.
-            goal = sp[eff]
+            goal = self.leg_goal(joint, mid, eff, head, upper + lower)
             pole = sp[mid] - sp[joint]
         else:
             # Hands relative to the shoulder, the source arm scaled to the rig's arm length.
@@ -839,6 +839,19 @@ class _Solve:
             pole = sp[mid] - sp[joint]
         self.desired[mid] = two_bone_middle(head, goal, upper, lower, pole)
         self.desired[eff] = goal
+
+    def leg_goal(self, hip: str, knee: str, ankle: str, head: np.ndarray, length: float) -> np.ndarray:
+        """(T, 3) where a leg of ``length`` from ``head`` puts its ankle: the scaled source's ankle, but no further
+        from the hip, in the leg's own length, than the source's ankle is from its hip. The take is scaled by the
+        mean of the rig's legs, so on a rig whose legs differ in length the shorter one could not reach and its
+        knee snapped straight; that foot is drawn up the leg instead (it stands as high as its shorter leg
+        allows). A longer leg still bends more than the source's: its foot stays on the source's."""
+        sp = self.sp
+        src_len = np.linalg.norm(sp[knee] - sp[hip], axis=-1) + np.linalg.norm(sp[ankle] - sp[knee], axis=-1)
+        reach = length * np.linalg.norm(sp[ankle] - sp[hip], axis=-1) / np.maximum(src_len, _EPS)  # (T,)
+        offset = sp[ankle] - head
+        dist = np.linalg.norm(offset, axis=-1)
+        return head + offset * (np.minimum(dist, reach) / np.maximum(dist, _EPS))[:, None]
 
     def aim(self, b: int, joint: str, end: str, Crot: np.ndarray, head: np.ndarray) -> np.ndarray:
         """(T, 3, 3) armature-space rotation of bone b: its segment along the desired direction, twisted."""
