@@ -419,3 +419,41 @@ def test_a_shorter_leg_bends_like_the_source_instead_of_snapping_straight(takes)
         bend_src = fidelity.knee_bend_deg(src[:, J["left_hip"]], src[:, J["left_knee"]], src[:, J["left_ankle"]])
         assert np.mean(np.abs(bend_rig - bend_src)) < 1.0, (clip, np.mean(np.abs(bend_rig - bend_src)))
         assert fid["locked_knee_frac"] == 0.0 and fid["sink_cm"] < 1e-6
+
+
+def iclone_like_rig(names: dict | None = None) -> rt.RigRest:
+    """The canonical skeleton with iClone's trunk: a "Hip" root from which both the "pelvis" bone (carrying the
+    thighs) and the spine hang. ``names``: canonical joint -> bone name (default: the joint names)."""
+    base = rt.canonical_rig()
+    pelvis = base.index("pelvis")
+    names = ["Hip"] + [(names or {}).get(n, n) for n in base.names]
+    parents = [-1] + [p + 1 if p >= 0 else 0 for p in base.parents]
+    parents[1 + base.index("spine1")] = 0  # the spine beside the pelvis bone, not below it
+    heads = np.concatenate([base.heads[pelvis:pelvis + 1] - [0.0, 0.0, 0.02], base.heads])
+    tails = np.concatenate([base.heads[pelvis:pelvis + 1], base.tails])
+    return rt.rig_from_heads(names, parents, heads, tails)
+
+
+def test_a_pelvis_beside_the_spine_hands_the_root_motion_to_the_bone_both_hang_from(takes):
+    """iClone rigs: Hip -> Pelvis -> thighs and Hip -> Waist -> spine. Keying the root motion on the mapped pelvis left
+    the whole trunk at the origin (Blender played the head metres from the take). The bone both hang from carries it
+    now; the pelvis bone between it and the thighs stays at rest."""
+    rig = iclone_like_rig()
+    joints = {n: n for n in rt.JOINT_NAMES}
+    result = rt.retarget(takes["dataset-2_walk-turn-left_normal_027"], rig, joints)
+    assert result.root_bone == "Hip" and "pelvis" not in result.bones
+    fid = fidelity.fidelity(result)
+    assert fid["head_err"] < 0.01 and fid["effector_err_mean"] < 0.02
+    unrelated = dict(joints, pelvis="left_wrist")  # no bone both hang from that is free: a clear error
+    with pytest.raises(rt.RetargetError, match="does not carry"):
+        rt.check_bone_map({**unrelated, "left_wrist": "Hip"}, rig)
+
+
+def test_daz_names_map_collar_and_upper_arm():
+    names = ["hip", "abdomen", "chest", "neck", "head", "lCollar", "lShldr", "lForeArm", "lHand", "rCollar", "rShldr",
+             "rForeArm", "rHand", "lButtock", "lThigh", "lShin", "lFoot", "rButtock", "rThigh", "rShin", "rFoot"]
+    parents = [None, "hip", "abdomen", "chest", "neck", "chest", "lCollar", "lShldr", "lForeArm", "chest", "rCollar",
+               "rShldr", "rForeArm", "hip", "lButtock", "lThigh", "lShin", "hip", "rButtock", "rThigh", "rShin"]
+    j = bm.detect_bone_map(names, parents).bone_map.joints
+    assert (j["left_collar"], j["left_shoulder"], j["left_elbow"]) == ("lCollar", "lShldr", "lForeArm")
+    assert (j["pelvis"], j["left_hip"], j["right_knee"]) == ("hip", "lThigh", "rShin")

@@ -289,3 +289,45 @@ def test_batch_keys_an_imported_bvh_rig(tmp_path, capsys):
                        "--bone-map", partial], user_dir=tmp_path / "blender_user", timeout=120)
     assert proc.returncode == 2 and "left_knee" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
     assert not (tmp_path / "y.blend").exists()
+
+
+POSED_LINK = r"""
+import sys
+sys.path.insert(0, {repo!r})
+sys.path.insert(0, {repo!r} + "/tests")
+import bpy, addon_utils
+import numpy as np
+bpy.ops.wm.read_factory_settings(use_empty=True)
+addon_utils.enable("blender_addon", default_set=True)
+from blender_addon.scene import read_rig as rig_io, write_action
+from mld_core.rig import bone_maps
+from test_retarget import iclone_like_rig
+mixamo = bone_maps.load_presets()["mixamo"].bones
+names = {{j: "mixamorig:" + mixamo[j][0].split(":")[-1] for j in mixamo}}  # the mixamo preset finds its Hips
+obj = rig_io.build_armature(iclone_like_rig(names), "iclone_like")
+link = obj.pose.bones["mixamorig:Hips"]  # between the root (Hip) and the thighs: not keyed
+link.rotation_quaternion = (0.9, 0.3, 0.1, 0.0)  # what a BVH import's motion leaves on it
+s = bpy.context.scene.mld_motion
+s.target = obj
+s.prompt, s.seconds, s.steps = "a person walks", 2.0, 2
+out = {{"generate": sorted(bpy.ops.mld.generate()), "error": s.last_error}}
+act = obj.animation_data.action
+keyed = {{}}
+for fc in write_action.fcurves_of(act):
+    keyed.setdefault(fc.data_path.split('"')[1], set()).add(fc.data_path.split(".")[-1])
+out["root_location"] = "location" in keyed.get("Hip", set())
+out["link_keys"] = sorted(keyed.get("mixamorig:Hips", set()))
+bpy.context.scene.frame_set(bpy.context.scene.frame_start + 5)
+out["link_at_rest"] = bool(np.allclose(np.array(link.matrix_basis), np.eye(4), atol=1e-6))
+emit(out)
+"""
+
+
+def test_a_posed_link_between_keyed_bones_is_keyed_at_rest(tmp_path):
+    from mld_core.testing import tiny_model
+
+    model = tiny_model(tmp_path / "tiny")
+    r = run_bpy_script(POSED_LINK.format(repo=str(REPO)), tmp_path, timeout=180, MLD_MODEL_DIR=model)
+    assert r["generate"] == ["FINISHED"] and r["error"] == ""
+    assert r["root_location"]  # the bone the pelvis and the spine hang from carries the root motion
+    assert r["link_keys"] == ["location", "rotation_quaternion", "scale"] and r["link_at_rest"]

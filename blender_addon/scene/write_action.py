@@ -133,6 +133,39 @@ def set_pose_properties(obj, pose_properties: dict) -> list[str]:
     return done
 
 
+def posed_links(obj, keyed) -> list[str]:
+    """Bones without keys above keyed ones whose pose is not their rest (a BVH import leaves its motion's pose on
+    them when its Action is removed): the retargeting assumed them at rest, so the Action keys them there."""
+    keyed = set(keyed)
+    links = set()
+    for name in keyed:
+        bone = obj.data.bones.get(name)
+        parent = bone.parent if bone is not None else None
+        while parent is not None:
+            if parent.name not in keyed:
+                links.add(parent.name)
+            parent = parent.parent
+    identity = np.eye(4)
+    return sorted(n for n in links
+                  if not np.allclose(np.array(obj.pose.bones[n].matrix_basis, dtype=np.float64), identity, atol=1e-6))
+
+
+def rest_curves(obj, bones, frame: float) -> list:
+    """One key per channel holding each of ``bones`` at rest at ``frame`` (keyframes.CurveKeys)."""
+    from mld_core.rig.keyframes import CurveKeys
+
+    rest = {"QUATERNION": ("rotation_quaternion", (1.0, 0.0, 0.0, 0.0)),
+            "AXIS_ANGLE": ("rotation_axis_angle", (0.0, 0.0, 1.0, 0.0))}
+    curves = []
+    for name in bones:
+        rotation = rest.get(obj.pose.bones[name].rotation_mode, ("rotation_euler", (0.0, 0.0, 0.0)))
+        for prop, values in (("location", (0.0, 0.0, 0.0)), rotation, ("scale", (1.0, 1.0, 1.0))):
+            for index, value in enumerate(values):
+                curves.append(CurveKeys(f'pose.bones["{name}"].{prop}', index, name, np.array([frame]),
+                                        np.array([value])))
+    return curves
+
+
 def push_to_nla(obj, action, slot, frame_start: float):
     """Put ``action`` on a new NLA track of ``obj`` as one strip starting at ``frame_start``; returns the strip."""
     ad = obj.animation_data or obj.animation_data_create()
@@ -157,6 +190,7 @@ def keys_to_action(
     """A new Action holding ``baked`` (``keyframes.BakedKeys``, the one keys object of every rig) for ``obj``.
 
     Sets each keyed pose bone's rotation mode (``baked.rotation_modes``) and the bone map's ``pose_properties``;
+    unkeyed bones above keyed ones that are not at rest get one key at rest (``posed_links``);
     with ``nla`` the Action goes onto a new NLA track as a strip (the active Action is left alone), otherwise it
     is assigned if asked (the previous Action keeps a fake user). Returns the Action.
     """
@@ -164,7 +198,7 @@ def keys_to_action(
     bones = sorted({c.group for c in baked.curves})
     action = _new_action(obj, bones, name, properties)
     writer = ChannelWriter(action, obj)
-    for curve in baked.curves:
+    for curve in baked.curves + rest_curves(obj, posed_links(obj, bones), baked.frame_start):
         fc = writer.fcurve(curve.data_path, curve.index, curve.group)
         write_keys(fc, curve.frames, curve.values, baked.interpolation, handle_type=baked.handle_type,
                    auto_smoothing=baked.auto_smoothing)

@@ -278,7 +278,7 @@ _ROLE_WORDS = {
     "neck": ("neck",),
     "head": ("head",),
     "collar": ("clavicle", "collar", "collarbone", "shoulder"),
-    "upperarm": ("upperarm", "uparm", "arm", "humerus", "bicep"),
+    "upperarm": ("upperarm", "uparm", "arm", "humerus", "bicep", "shldr"),  # DAZ: lCollar -> lShldr -> lForeArm
     "forearm": ("forearm", "lowerarm", "loarm", "elbow"),
     "hand": ("hand", "wrist"),
     "thigh": ("thigh", "upleg", "upperleg", "femur", "hip", "uleg"),

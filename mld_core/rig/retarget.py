@@ -711,6 +711,26 @@ def check_bone_map(bone_map: Mapping[str, str], rig: RigRest) -> dict[str, str]:
         raise RetargetError(f"the armature has no bones named: {', '.join(absent)}")
     if len(set(bone_map.values())) != len(bone_map):
         raise RetargetError("bone map uses a bone for more than one joint")
+    return _pelvis_carries_the_trunk(bone_map, rig)
+
+
+def _pelvis_carries_the_trunk(bone_map: dict[str, str], rig: RigRest) -> dict[str, str]:
+    """The pelvis bone carries the whole body (its location is the take's root motion). Where the legs hang from a
+    pelvis bone beside the spine (iClone: Hip -> Pelvis -> thighs and Hip -> Waist -> spine), the bone both hang
+    from is keyed as the pelvis instead; the bone between it and the thighs stays at rest."""
+    pelvis = rig.index(bone_map["pelvis"])
+    for joint in ("spine1", "spine2", "spine3", "neck", "head"):
+        if joint not in bone_map:
+            continue
+        above = rig.ancestors(rig.index(bone_map[joint]))
+        if pelvis in above:
+            continue
+        common = next((a for a in [pelvis] + rig.ancestors(pelvis) if a in above), None)
+        if common is None or rig.names[common] in bone_map.values():
+            raise RetargetError(f"the pelvis bone {bone_map['pelvis']!r} does not carry the {joint} bone "
+                                f"{bone_map[joint]!r}: map the pelvis to a bone both hang from")
+        pelvis = common
+        bone_map = {**bone_map, "pelvis": rig.names[common]}
     return bone_map
 
 
