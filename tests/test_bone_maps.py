@@ -178,3 +178,20 @@ def test_bad_json_is_a_clear_error(tmp_path):
     bad.write_text(json.dumps([1, 2]))
     with pytest.raises(bm.BoneMapError, match="not a bone map"):
         bm.BoneMap.load(bad)
+
+
+def test_ik_chains_resolve_against_the_rig_and_survive_json_and_rows():
+    from mld_core.rig.bone_map_rows import map_extras, map_to_rows, rows_to_map
+
+    preset = bm.load_presets()["rigify"]
+    names = sorted({b for alts in preset.bones.values() for b in alts} | {"torso", "upper_arm_parent.L"}
+                   | {b for c in preset.ik_controls for b in c["fk"] + c["ik"] + [c["pole"]]})
+    names.remove("foot_ik.R")  # a rig without the right foot's IK control: that chain is left out
+    bone_map, _ = bm.apply_preset(preset, names)
+    assert len(bone_map.ik_controls) == 3
+    assert {"fk": ["upper_arm_fk.L", "forearm_fk.L", "hand_fk.L"], "ik": ["upper_arm_ik.L", "hand_ik.L"],
+            "pole": "upper_arm_ik_target.L"} in bone_map.ik_controls
+    assert bm.BoneMap.from_dict(bone_map.to_dict()).ik_controls == bone_map.ik_controls
+    assert rows_to_map(map_to_rows(bone_map), map_extras(bone_map)).ik_controls == bone_map.ik_controls
+    with pytest.raises(bm.BoneMapError, match="IK chain"):
+        bm.ik_chains([{"fk": ["a", "b"], "ik": ["c", "d"]}])

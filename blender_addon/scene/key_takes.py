@@ -15,6 +15,8 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from mld_core.rig import bone_maps
 from mld_core.rig.keying import (
     KeyPlan,
@@ -42,6 +44,7 @@ class ApplyReport:
     bone_map: str = ""  # where the map came from (preset name, "auto", "user", "file" ...)
     reduction_ratios: list = field(default_factory=list)  # per take: keys kept / keys on every frame (1.0: none)
     nla: bool = False
+    ik_keys: int = 0  # keys on IK controls matching the FK pose (control rigs: Rigify)
 
     @property
     def reduction_ratio(self) -> float:
@@ -108,12 +111,13 @@ def settings_of(scene) -> RetargetSettings:
 
 # -- keying -----------------------------------------------------------------------------------------------------
 def apply_result(obj, result, scene, *, exact: bool = True, set_frame_range: bool = False, assign: bool = True,
-                 options: RetargetSettings | None = None, bone_map=None) -> ApplyReport:
+                 options: RetargetSettings | None = None, bone_map=None, ik_controls: bool = True) -> ApplyReport:
     """Key every take of ``result`` (a generation.GenerationResult) onto ``obj`` as new Actions.
 
     exact: on the canonical armature, key every bone's location too (each joint exactly on the generated one);
     options: how to key (reduction, rotation mode, foot lock, NLA); default: the scene's panel settings.
     bone_map: a ``bone_maps.BoneMap`` to use instead of the armature's own (stored or detected).
+    ik_controls: key the map's IK controls to match the FK pose (Rigify; about 20 ms a frame, so previews skip it).
     Raises ValueError (nothing keyed, no Action created) when the armature cannot take the motion.
     """
     options = options if options is not None else settings_of(scene)
@@ -124,7 +128,7 @@ def apply_result(obj, result, scene, *, exact: bool = True, set_frame_range: boo
         raise ValueError(problem)
     report = ApplyReport(fps=scene_fps(scene), nla=options.nla)
     planned, bone_map = plan_keys(obj, result, scene, options, bone_map, exact, report)
-    write_keys(obj, planned, bone_map, options, exact, scene.frame_start, assign, report)
+    write_keys(obj, planned, bone_map, options, exact, scene.frame_start, assign, report, ik_controls)
     panel = getattr(scene, "mld_motion", None)
     if panel is not None and hasattr(panel, "last_reduction"):
         panel.last_reduction = report.reduction_ratio if report.retargeted and options.reduce else 1.0
@@ -168,8 +172,9 @@ def plan_keys(obj, result, scene, options: RetargetSettings, bone_map, exact: bo
 
 
 def write_keys(obj, planned, bone_map, options: RetargetSettings, exact: bool, start: int, assign: bool,
-               report: ApplyReport) -> None:
-    """One Action per planned take, through the one writer; fills ``report``."""
+               report: ApplyReport, ik_controls: bool = True) -> None:
+    """One Action per planned take, through the one writer; fills ``report``. ``ik_controls``: also key the map's
+    IK controls to match the FK pose (scene.ik_controls)."""
     import bpy
 
     existing = {a.name for a in bpy.data.actions}
@@ -188,9 +193,39 @@ def write_keys(obj, planned, bone_map, options: RetargetSettings, exact: bool, s
         action = write_action.keys_to_action(
             obj, keys, name, assign=assign and index == 0, nla=options.nla, properties=props,
             pose_properties=bone_map.pose_properties if report.retargeted else {})
+        if report.retargeted and ik_controls and bone_map.ik_controls:
+            report.ik_keys += key_ik_controls(obj, action, keys, bone_map.ik_controls)
         report.reduction_ratios.append(float(keys.stats.get("reduction_ratio", 1.0)))
         report.key_seconds += seconds + time.perf_counter() - t0
         report.actions.append(action.name)
         report.keys += keys.num_keys
         if index == 0:
             report.frames = keys.num_frames
+
+
+def key_ik_controls(obj, action, keys, chains) -> int:
+    """Key ``chains``' IK controls into ``action`` to match its FK pose (played for it, then the armature's
+    assignment restored); returns the keys written."""
+    from . import ik_controls
+
+    ad = obj.animation_data or obj.animation_data_create()
+    before = (ad.action, getattr(ad, "action_slot", None))
+    slot = write_action.action_slot(action)
+    ad.action = action
+    if slot is not None:
+        ad.action_slot = slot
+    try:
+        frames = keys.frame_start + np.arange(keys.num_frames, dtype=np.float64)
+        import bpy
+
+        curves = ik_controls.ik_curves(obj, bpy.context.scene, chains, frames)
+        writer = write_action.ChannelWriter.of(action, obj)
+        for curve in curves:
+            write_action.write_keys(writer.fcurve(curve.data_path, curve.index, curve.group), curve.frames,
+                                    curve.values, keys.interpolation, handle_type=keys.handle_type,
+                                    auto_smoothing=keys.auto_smoothing)
+    finally:
+        ad.action = before[0]
+        if before[0] is not None and before[1] is not None:
+            ad.action_slot = before[1]
+    return int(sum(len(c.frames) for c in curves))

@@ -47,6 +47,17 @@ class ChannelWriter:
             return fc
         return self.action.fcurves.new(data_path, index=index, action_group=group)
 
+    @classmethod
+    def of(cls, action, obj) -> "ChannelWriter":
+        """A writer adding F-curves to an Action made here (its first slot, layer and strip)."""
+        writer = cls.__new__(cls)
+        writer.action, writer.obj, writer._groups = action, obj, {}
+        writer.slot = action_slot(action)
+        writer._bag = action.layers[0].strips[0].channelbag(writer.slot, ensure=True) if writer.slot else None
+        if writer._bag is not None:
+            writer._groups = {g.name: g for g in writer._bag.groups}
+        return writer
+
     def assign(self) -> None:
         ad = self.obj.animation_data or self.obj.animation_data_create()
         ad.action = self.action
@@ -166,6 +177,15 @@ def rest_curves(obj, bones, frame: float) -> list:
     return curves
 
 
+def property_curves(pose_properties: dict | None, frame: float) -> list:
+    """The bone map's ``pose_properties`` (Rigify's IK_FK switches ...) as one key each: stored with the Action, so
+    playing another Action and coming back restores them."""
+    from mld_core.rig.keyframes import CurveKeys
+
+    return [CurveKeys(f'pose.bones["{bone}"]["{key}"]', 0, bone, np.array([frame]), np.array([float(value)]))
+            for bone, props in (pose_properties or {}).items() for key, value in props.items()]
+
+
 def push_to_nla(obj, action, slot, frame_start: float):
     """Put ``action`` on a new NLA track of ``obj`` as one strip starting at ``frame_start``; returns the strip."""
     ad = obj.animation_data or obj.animation_data_create()
@@ -198,7 +218,10 @@ def keys_to_action(
     bones = sorted({c.group for c in baked.curves})
     action = _new_action(obj, bones, name, properties)
     writer = ChannelWriter(action, obj)
-    for curve in baked.curves + rest_curves(obj, posed_links(obj, bones), baked.frame_start):
+    properties_here = {b: p for b, p in (pose_properties or {}).items() if b in pose_bones}
+    extra = rest_curves(obj, posed_links(obj, bones), baked.frame_start) + property_curves(properties_here,
+                                                                                            baked.frame_start)
+    for curve in baked.curves + extra:
         fc = writer.fcurve(curve.data_path, curve.index, curve.group)
         write_keys(fc, curve.frames, curve.values, baked.interpolation, handle_type=baked.handle_type,
                    auto_smoothing=baked.auto_smoothing)

@@ -136,7 +136,7 @@ def finish_job(job, target: Target | None) -> tuple[str, str]:
     previous = obj.animation_data.action.name if obj.animation_data and obj.animation_data.action else ""
     try:
         report = apply_result(obj, job.result, scene, exact=target.exact, set_frame_range=target.set_frame_range,
-                              options=target.options)
+                              options=target.options, ik_controls=not target.live)
         if target.preview:
             from ..scene import take_review
 

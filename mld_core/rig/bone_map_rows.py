@@ -39,6 +39,7 @@ def map_extras(bone_map: bm.BoneMap) -> str:
             "source": bone_map.source,
             "parent_overrides": dict(bone_map.parent_overrides),
             "pose_properties": {b: dict(p) for b, p in bone_map.pose_properties.items()},
+            "ik_controls": [dict(c) for c in bone_map.ik_controls],
         },
         sort_keys=True,
     )
@@ -63,4 +64,9 @@ def rows_to_map(rows: Iterable, extras: str = "") -> bm.BoneMap:
     used = set(joints.values())
     overrides = {c: p for c, p in dict(data.get("parent_overrides", {})).items() if c in used}
     props = {b: dict(p) for b, p in dict(data.get("pose_properties", {})).items()}
-    return bm.BoneMap(joints, source=str(data.get("source", "user")), parent_overrides=overrides, pose_properties=props)
+    try:
+        chains = bm.ik_chains(data.get("ik_controls", []))
+    except (bm.BoneMapError, AttributeError, TypeError):
+        chains = []
+    return bm.BoneMap(joints, source=str(data.get("source", "user")), parent_overrides=overrides, pose_properties=props,
+                      ik_controls=chains)

@@ -47,6 +47,8 @@ class BoneMap:
     source: str = "user"
     parent_overrides: dict[str, str] = field(default_factory=dict)
     pose_properties: dict[str, dict[str, float]] = field(default_factory=dict)
+    # IK chains to key consistent with the FK pose: [{"fk": [upper, lower, end], "ik": [root, end], "pole": bone}]
+    ik_controls: list[dict] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         unknown = [j for j in self.joints if j not in JOINT_NAMES]
@@ -83,6 +85,7 @@ class BoneMap:
             "bones": dict(self.joints),
             "parent_overrides": dict(self.parent_overrides),
             "pose_properties": {b: dict(p) for b, p in self.pose_properties.items()},
+            "ik_controls": [dict(c) for c in self.ik_controls],
         }
 
     @classmethod
@@ -101,6 +104,7 @@ class BoneMap:
             source=str(data.get("source", "file")),
             parent_overrides=dict(data.get("parent_overrides", {})),
             pose_properties={b: dict(p) for b, p in data.get("pose_properties", {}).items()},
+            ik_controls=ik_chains(data.get("ik_controls", [])),
         )
 
     def save(self, path: str | os.PathLike) -> None:
@@ -132,6 +136,22 @@ class Preset:
     bones: dict[str, list[str]]
     parent_overrides: dict[str, str] = field(default_factory=dict)
     pose_properties: dict[str, dict[str, float]] = field(default_factory=dict)
+    ik_controls: list[dict] = field(default_factory=list)
+
+
+def ik_chains(data) -> list[dict]:
+    """IK chains from JSON: each {"fk": [upper, lower, end], "ik": [root control, end control], optionally "pole"
+    (the pole control)}; malformed ones raise BoneMapError."""
+    chains = []
+    for chain in data or []:
+        fk, ik = chain.get("fk"), chain.get("ik")
+        optional = {k: chain[k] for k in ("pole",) if chain.get(k)}
+        if not (isinstance(fk, list) and len(fk) == 3 and isinstance(ik, list) and len(ik) == 2
+                and all(isinstance(b, str) and b for b in fk + ik) and all(isinstance(b, str) for b in optional.values())):
+            raise BoneMapError(f"an IK chain needs 'fk': [upper, lower, end], 'ik': [root, end] and optionally a 'pole' "
+                               f"bone name, got {chain!r}")
+        chains.append({"fk": list(fk), "ik": list(ik), **optional})
+    return chains
 
 
 def load_presets(directory: str | os.PathLike | None = None) -> dict[str, Preset]:
@@ -152,6 +172,7 @@ def load_presets(directory: str | os.PathLike | None = None) -> dict[str, Preset
             bones=bones,
             parent_overrides=dict(data.get("parent_overrides", {})),
             pose_properties={b: dict(p) for b, p in data.get("pose_properties", {}).items()},
+            ik_controls=ik_chains(data.get("ik_controls", [])),
         )
     order = ["canonical", "rigify", "rigify_metarig", "mixamo", "bandai", "bvh_common", "cmu_asf"]
     return dict(sorted(presets.items(), key=lambda kv: (order.index(kv[0]) if kv[0] in order else len(order), kv[0])))
@@ -199,7 +220,13 @@ def apply_preset(preset: Preset, bone_names: Sequence[str]) -> tuple[BoneMap, in
 
     overrides = {resolve(c): resolve(p) for c, p in preset.parent_overrides.items() if resolve(c) and resolve(p)}
     props = {resolve(b): dict(p) for b, p in preset.pose_properties.items() if resolve(b)}
-    return BoneMap(joints, source=preset.name, parent_overrides=overrides, pose_properties=props), exact
+    chains = []
+    for chain in preset.ik_controls:  # a chain with a bone the rig lacks is left out
+        bones = {k: ([resolve(b) for b in v] if isinstance(v, list) else resolve(v)) for k, v in chain.items()}
+        if all(bones["fk"]) and all(bones["ik"]) and ("pole" not in chain or bones["pole"]):
+            chains.append(bones)
+    return BoneMap(joints, source=preset.name, parent_overrides=overrides, pose_properties=props,
+                   ik_controls=chains), exact
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -259,7 +286,7 @@ def detect_bone_map(
             base.joints[joint] = bone
             used.add(bone)
     merged = BoneMap(base.joints, source=f"{base.source}+auto", parent_overrides=base.parent_overrides,
-                     pose_properties=base.pose_properties)
+                     pose_properties=base.pose_properties, ik_controls=base.ik_controls)
     return Detection(merged, merged.source, scores)
 
 
