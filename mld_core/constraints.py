@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from mld_core.inputs import InputError, check_prompt, finite_number, whole_number
+from mld_core.motion import skeleton as sk
 from mld_core.motion.skeleton import JOINT_NAMES
 
 JOINT_INDEX = {name: i for i, name in enumerate(JOINT_NAMES)}
@@ -80,6 +81,13 @@ class RootPath:
         return float(np.linalg.norm(np.asarray(joints)[frames, 0][:, [0, 2]] - xz, axis=-1).mean())
 
 
+def root_relative(joints):
+    """Joints (..., T, 22, 3) relative to each frame's root ground position (the pelvis at x = z = 0)."""
+    ground = joints[..., :1, :] * (joints.new_tensor([1.0, 0.0, 1.0]) if isinstance(joints, torch.Tensor)
+                                   else np.array([1.0, 0.0, 1.0]))
+    return joints - ground
+
+
 @dataclass
 class Loop:
     """The last frame continues into the first: same pose (relative to the root's ground position) and velocity."""
@@ -90,27 +98,23 @@ class Loop:
     def last_frame(self) -> int:
         return 0
 
-    @staticmethod
-    def _local(joints):  # joints relative to the root's ground position, (..., T, 22, 3)
-        ground = joints[..., :1, :] * joints.new_tensor([1.0, 0.0, 1.0]) if isinstance(joints, torch.Tensor) \
-            else joints[..., :1, :] * np.array([1.0, 0.0, 1.0])
-        return joints - ground
-
     def cost(self, joints: torch.Tensor) -> torch.Tensor:
-        local = self._local(joints)
+        local = root_relative(joints)
         gap = ((local[:, -1] - local[:, 0]) ** 2).sum(-1).mean()
         jump = (((joints[:, 1] - joints[:, 0]) - (joints[:, -1] - joints[:, -2])) ** 2).sum(-1).mean()
         return gap + jump
 
     def residual(self, joints: np.ndarray) -> float:
-        local = self._local(np.asarray(joints))
+        local = root_relative(np.asarray(joints))
         return float(np.linalg.norm(local[-1] - local[0], axis=-1).max())
 
 
 @dataclass
 class Continuation:
-    """The take's first frames repeat ``joints`` (K, 22, 3), given in the take's own frame (root at the origin facing
-    +Z at the first of them): how a take continues another (``MLDPipeline.sequence``)."""
+    """The take's first frames repeat the pose of ``joints`` (K, 22, 3) relative to the root's ground position: how a
+    take continues another (``MLDPipeline.sequence``). Where the root goes is the take's own: the sequence joins the
+    takes' root velocities, so a segment may turn back or stop (a run, then a walk backwards) instead of being
+    dragged on at the previous segment's speed."""
 
     joints: np.ndarray
     weight: float = 1.0
@@ -120,11 +124,12 @@ class Continuation:
         return len(self.joints) - 1
 
     def cost(self, joints: torch.Tensor) -> torch.Tensor:
-        target = torch.as_tensor(np.asarray(self.joints, np.float32), dtype=joints.dtype)
-        return ((joints[:, : len(target)] - target) ** 2).sum(-1).mean()
+        target = root_relative(torch.as_tensor(np.asarray(self.joints, np.float32), dtype=joints.dtype))
+        return ((root_relative(joints[:, : len(target)]) - target) ** 2).sum(-1).mean()
 
     def residual(self, joints: np.ndarray) -> float:
-        return float(np.linalg.norm(np.asarray(joints)[: len(self.joints)] - self.joints, axis=-1).mean())
+        own = root_relative(np.asarray(joints)[: len(self.joints)])
+        return float(np.linalg.norm(own - root_relative(np.asarray(self.joints)), axis=-1).mean())
 
 
 @dataclass
@@ -139,6 +144,7 @@ class Constraints:
     smooth_weight: float = 0.1  # mean squared feature acceleration
     prior_weight: float = 1e-3  # keeps latent and features near the sample: the motion stays the prompt's
     planted_weight: float = 1.0  # planted feet (the sample's contact channels) keep still while the root moves
+    bone_weight: float = 10.0  # bones keep the reference skeleton's lengths (else planted feet stretch the legs)
 
     def __bool__(self) -> bool:
         return bool(self.items)
@@ -168,6 +174,14 @@ def planted_foot_speed(joints: torch.Tensor, contacts: torch.Tensor) -> torch.Te
     step = feet[:, 1:] - feet[:, :-1]  # (B, T-1, 4, 2)
     planted = (contacts[:, 1:] & contacts[:, :-1]).to(joints.dtype)  # (B, T-1, 4)
     return ((step ** 2).sum(-1) * planted).sum() / planted.sum().clamp(min=1.0)
+
+
+def bone_stretch(joints: torch.Tensor) -> torch.Tensor:
+    """Mean squared difference (m^2) of the bone lengths of joints (B, T, 22, 3) from the reference skeleton's."""
+    parents = list(sk.PARENTS[1:])
+    lengths = (joints[:, :, 1:] - joints[:, :, parents]).norm(dim=-1)  # (B, T, 21)
+    reference = torch.as_tensor(sk.REFERENCE_BONE_LENGTHS[1:], dtype=joints.dtype, device=joints.device)
+    return ((lengths - reference) ** 2).mean()
 
 
 def path_along(points: np.ndarray, frames: int, units_per_metre: float = 1.0) -> RootPath:

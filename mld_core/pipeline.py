@@ -24,7 +24,7 @@ from mld_core.inputs import InputError
 from mld_core import inputs
 from mld_core.checkpoint import DEFAULT_MODEL_DIR, CheckpointError, ModelConfig, load_config, load_weights
 from mld_core.models.denoiser import LatentDenoiser
-from mld_core.constraints import planted_foot_speed
+from mld_core.constraints import bone_stretch, planted_foot_speed
 from mld_core.motion.features import FOOT_CONTACT, features_to_joints
 from mld_core.motion.repair import repair_features
 from mld_core.models.vae import MotionVAE
@@ -202,7 +202,8 @@ class MLDPipeline:
                 joints = features_to_joints(x * std + mean)
                 loss = (constraints.cost(joints) + constraints.smooth_weight * (accel ** 2).mean()
                         + constraints.prior_weight * ((x - x0) ** 2).mean()
-                        + constraints.planted_weight * planted_foot_speed(joints, contacts))
+                        + constraints.planted_weight * planted_foot_speed(joints, contacts)
+                        + constraints.bone_weight * bone_stretch(joints))
                 loss.backward()
                 opt.step()
             features = (x.detach() * std + mean).cpu().numpy()
@@ -400,10 +401,11 @@ class MLDPipeline:
     def sequence(self, segments: Sequence[tuple[str, float]], *, seed: int = 0, overlap_s: float = 0.5,
                  **kwargs) -> MLDOutput:
         """One motion from ``[(prompt, seconds), ...]``: each segment continues the previous one (its first
-        ``overlap_s`` seconds are constrained to the previous one's last, by refining the features only: the latent
-        stays the segment prompt's sample; the features cross-fade there), so
-        position and facing carry over. Segment k uses seed ``seed + k``. Returns one row; ``timings["segments"]``
-        holds each segment's first frame."""
+        ``overlap_s`` seconds are constrained to the previous one's last pose, by refining the features only: the
+        latent stays the segment prompt's sample; the features cross-fade there); the root velocities join, so
+        position and facing carry over and each segment moves as its prompt says. Segment k uses seed ``seed + k``
+        and is repaired as a free take of its own. Returns one row; ``timings["segments"]`` holds each segment's
+        first frame."""
         from mld_core.constraints import Constraints, Continuation
 
         t_start = time.perf_counter()
@@ -411,22 +413,26 @@ class MLDPipeline:
         if not segments:
             raise InputError("a sequence needs at least one (prompt, seconds) segment")
         overlap = int(round(overlap_s * self.config.fps))
-        repair = kwargs.pop("repair", True)  # once, on the whole sequence (below)
+        repair = kwargs.pop("repair", True)  # per segment, once they are joined (below)
         first = self(segments[0][0], segments[0][1], seed=seed, repair=False, **kwargs)
         features = first.features[0, : int(first.lengths[0])]  # (T, F)
         starts, residuals = [0], []
         for k, (prompt, seconds) in enumerate(segments[1:], start=1):
             tail = features_to_joints(features[-overlap:])  # the last frames, in their own frame
-            out = self(prompt, seconds + overlap / self.config.fps, seed=seed + k, repair=False,
-                       constraints=Constraints([Continuation(tail)], steps=0), **kwargs)
+            # the pose only (no planted-feet term: that would hold the root back where the legs do not carry it)
+            join = Constraints([Continuation(tail)], steps=0, planted_weight=0.0)
+            out = self(prompt, seconds + overlap / self.config.fps, seed=seed + k, repair=False, constraints=join,
+                       **kwargs)
             residuals += out.residuals[0]
             starts.append(len(features) - overlap)
             new = out.features[0, : int(out.lengths[0])]
             w = np.linspace(0.0, 1.0, overlap)[:, None]  # cross-fade the overlap: both are nearly the same frames
             seam = (1 - w) * features[-overlap:] + w * new[:overlap]
             features = np.concatenate([features[:-overlap], seam, new[overlap:]])  # (T, F)
-        if repair:
-            features = self.repair_rows(features[None], [len(features)])[0]
+        if repair:  # each segment on its own: a walk backwards keeps its travel after a long run
+            bounds = starts[1:] + [len(features)]
+            features = np.concatenate([self.repair_rows(features[None, a:b], [b - a])[0]
+                                       for a, b in zip(starts, bounds)])
         joints = self.joints_from_features(features[None], [len(features)])
         timings = {"segments": starts, "total_s": time.perf_counter() - t_start}
         return MLDOutput(features[None].astype(np.float32), joints, np.array([len(features)]),
