@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from bpy_util import REPO, requires_bpy, run_python
+from bpy_util import REPO, requires_bpy, run_bpy_script, run_python
 from mld_core.testing import tiny_model
 
 pytestmark = [pytest.mark.bpy, requires_bpy]
@@ -24,7 +24,7 @@ def test_batch_runs_a_job_file(tmp_path):
     (tmp_path / "jobs.json").write_text(json.dumps(jobs))
     out = tmp_path / "takes.blend"
     proc = run_python([REPO / "blender_addon" / "batch.py", "--jobs", tmp_path / "jobs.json", "--model", model,
-                       "--steps", "2", "--out", out], user_dir=tmp_path / "user", timeout=240)
+                       "--steps", "2", "--nla", "--out", out], user_dir=tmp_path / "user", timeout=240)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     takes = json.loads(out.with_suffix(".json").read_text())["takes"]
     assert [t["job"] for t in takes] == jobs["jobs"]
@@ -33,6 +33,21 @@ def test_batch_runs_a_job_file(tmp_path):
     assert [c["kind"] for c in takes[1]["constraints"]] == ["RootPath", "Loop"]
     assert [c["kind"] for c in takes[2]["constraints"]] == ["Continuation"]
     assert takes[2]["frames"] == 80  # 2 s + 2 s, one motion
+    # --nla: each take on its own track; the sequence's as one strip per segment, back to back, of one Action
+    tracks = run_bpy_script(STRIPS.format(blend=str(out)), tmp_path)
+    assert [len(t) for t in tracks] == [1, 1, 2]
+    (walk, bow) = tracks[2]
+    assert walk[0] == "a person walks" and bow[0] == "a person bows" and walk[1] == bow[1]
+    assert walk[2:] == [1.0, 31.0, 1.0, 31.0] and bow[2:] == [31.0, 80.0, 31.0, 80.0]  # the bow's own keys: 30..79
+
+
+STRIPS = r"""
+import bpy
+bpy.ops.wm.open_mainfile(filepath={blend!r})
+arm = [o for o in bpy.data.objects if o.type == "ARMATURE"][0]
+emit([[[s.name, s.action.name, s.frame_start, s.frame_end, s.action_frame_start, s.action_frame_end]
+       for s in t.strips] for t in arm.animation_data.nla_tracks])
+"""
 
 
 PANEL = r"""

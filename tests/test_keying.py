@@ -237,3 +237,12 @@ def test_the_match_mode_reaches_the_retarget(fixtures):
     for m in rw.MATCH_IDS:
         np.testing.assert_array_equal(values(keys[m]), values(ref[m]))
     assert not np.allclose(values(keys["effectors"]), values(keys["directions"]))
+
+
+def test_segment_strips_follow_the_keys_at_the_scene_rate():
+    from mld_core.rig.keying import segment_strips
+
+    segments = [("walk", 0), ("wave", 50), ("bow", 90)]  # a 130-frame take at 20 fps
+    assert segment_strips(segments, 130, 20, 20, 1) == [("walk", 1, 51), ("wave", 51, 91), ("bow", 91, 130)]
+    assert segment_strips(segments, 130, 20, 24, 10) == [("walk", 10, 70), ("wave", 70, 118), ("bow", 118, 165)]
+    assert segment_strips([("walk", 0), ("stop", 129)], 130, 20, 20, 1) == [("walk", 1, 130)]  # no empty strip

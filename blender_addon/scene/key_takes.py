@@ -2,7 +2,8 @@
 
 ``apply_result(obj, result, scene, ...)`` is what the operator (interactive and headless) and the batch script
 call: one new Action per take, named from prompt and seed, keyed in bulk at the scene's frame rate from its start
-frame, provenance stored as custom properties; the first take is assigned (or each goes onto its own NLA track).
+frame, provenance stored as custom properties; the first take is assigned (or each goes onto its own NLA track,
+a prompt sequence's take as one strip per segment).
 
 One road for every rig: ``read_rig.read_rig`` (the rest as arrays) + the armature's bone map (stored by the
 Retarget panel, else detected; the identity on the canonical armature) + the options -> ``keying.take_keys``
@@ -27,6 +28,7 @@ from mld_core.rig.keying import (
     map_problem,
     missing_message,
     plan_takes,
+    segment_strips,
 )
 
 from ..worker import naming
@@ -190,9 +192,12 @@ def write_keys(obj, planned, bone_map, options: RetargetSettings, exact: bool, s
                          mld_tolerance_deg=float(options.tolerance_deg), mld_rotation_mode=options.rotation_mode,
                          mld_foot_lock=int(options.foot_lock), mld_keys=int(keys.num_keys),
                          mld_reduction_ratio=float(keys.stats["reduction_ratio"]))
+        segments = getattr(take, "segments", None)
+        strips = segment_strips(segments, take.frames, take.fps, report.fps, keys.frame_start) if segments \
+            and options.nla else None
         action = write_action.keys_to_action(
             obj, keys, name, assign=assign and index == 0, nla=options.nla, properties=props,
-            pose_properties=bone_map.pose_properties if report.retargeted else {})
+            pose_properties=bone_map.pose_properties if report.retargeted else {}, segments=strips)
         if report.retargeted and ik_controls and bone_map.ik_controls:
             report.ik_keys += key_ik_controls(obj, action, keys, bone_map.ik_controls)
         report.reduction_ratios.append(float(keys.stats.get("reduction_ratio", 1.0)))

@@ -186,15 +186,22 @@ def property_curves(pose_properties: dict | None, frame: float) -> list:
             for bone, props in (pose_properties or {}).items() for key, value in props.items()]
 
 
-def push_to_nla(obj, action, slot, frame_start: float):
-    """Put ``action`` on a new NLA track of ``obj`` as one strip starting at ``frame_start``; returns the strip."""
+def push_to_nla(obj, action, slot, frame_start: float, segments=None):
+    """Put ``action`` on a new NLA track of ``obj``: one strip starting at ``frame_start``, or with ``segments``
+    ``[(name, first frame, last frame)]`` one strip per segment, each playing its own frames of the Action (a prompt
+    sequence's take). Returns the strips."""
     ad = obj.animation_data or obj.animation_data_create()
     track = ad.nla_tracks.new()
     track.name = action.name
-    strip = track.strips.new(action.name, int(round(frame_start)), action)
-    if slot is not None and hasattr(strip, "action_slot") and strip.action_slot != slot:
-        strip.action_slot = slot  # Blender 4.4+: a strip plays one slot of its action
-    return strip
+    strips = []
+    for name, first, last in segments or [(action.name, frame_start, None)]:
+        strip = track.strips.new(name, int(round(first)), action)
+        if last is not None:  # the strip plays frames first..last of the Action, where they were keyed
+            strip.action_frame_start, strip.action_frame_end = first, last
+        if slot is not None and hasattr(strip, "action_slot") and strip.action_slot != slot:
+            strip.action_slot = slot  # Blender 4.4+: a strip plays one slot of its action
+        strips.append(strip)
+    return strips
 
 
 def keys_to_action(
@@ -206,13 +213,15 @@ def keys_to_action(
     nla: bool = False,
     properties: dict | None = None,
     pose_properties: dict | None = None,
+    segments: list | None = None,
 ):
     """A new Action holding ``baked`` (``keyframes.BakedKeys``, the one keys object of every rig) for ``obj``.
 
     Sets each keyed pose bone's rotation mode (``baked.rotation_modes``) and the bone map's ``pose_properties``;
     unkeyed bones above keyed ones that are not at rest get one key at rest (``posed_links``);
-    with ``nla`` the Action goes onto a new NLA track as a strip (the active Action is left alone), otherwise it
-    is assigned if asked (the previous Action keeps a fake user). Returns the Action.
+    with ``nla`` the Action goes onto a new NLA track as a strip, or one strip per ``segments`` entry (name, first
+    and last frame; the active Action is left alone), otherwise it is assigned if asked (the previous Action keeps
+    a fake user). Returns the Action.
     """
     pose_bones = obj.pose.bones
     bones = sorted({c.group for c in baked.curves})
@@ -230,7 +239,7 @@ def keys_to_action(
             pose_bones[bone].rotation_mode = mode
     set_pose_properties(obj, pose_properties or {})
     if nla:
-        push_to_nla(obj, action, writer.slot, baked.frame_start)
+        push_to_nla(obj, action, writer.slot, baked.frame_start, segments)
     elif assign:
         keep_previous_action(obj)
         writer.assign()

@@ -41,6 +41,7 @@ class Take:
     coverage: object = None  # mld_core.coverage.Coverage of the prompt (None: not checked)
     badges: object = None  # mld_core.eval.quality.Badges (None: not scored)
     residuals: list | None = None  # [(constraint kind, metres, met)] for a directed take
+    segments: list | None = None  # [(prompt, first frame)] of a take made from a prompt sequence
 
     @property
     def frames(self) -> int:
@@ -158,6 +159,7 @@ def generate(pipe, request: GenerateRequest, callback=None, check_cancel=None) -
             coverage=coverage,
             badges=out.badges[row] if getattr(out, "badges", None) is not None else None,
             residuals=out.residuals[row] if getattr(out, "residuals", None) else None,
+            segments=list(zip([p for p, _ in sequence], out.timings["segments"])) if sequence else None,
         )
         take.name = action_name(request.prompt, request.seed, take.variant, request.variants)
         takes.append(take)

@@ -6,7 +6,7 @@ while the user asks for no key reduction, no Euler and no foot lock, every bone 
 key on every frame so each joint lands exactly on the generated position (``canonical_pose``). Everything else
 goes through the retarget solve and ``keyframes`` (resample, foot lock, reduction, rotation modes).
 Also here: :func:`map_problem` (one sentence naming missing bones, for polls and errors), a detection cache, and
-:func:`take_contacts`.
+:func:`take_contacts`, and :func:`segment_strips` (where a sequence's segments lie in the scene's frames).
 """
 
 from __future__ import annotations
@@ -273,3 +273,14 @@ def plan_takes(takes: Sequence, plan: KeyPlan) -> list:
                          exact=plan.exact, current_modes=plan.current_modes, exact_locations=plan.exact_locations)
         planned.append((take, keys, time.perf_counter() - t0))
     return planned
+
+
+def segment_strips(segments: Sequence[tuple[str, int]], frames: int, fps: float, scene_fps: float,
+                   frame_start: float) -> list[tuple[str, int, int]]:
+    """A sequence take's segments ``[(prompt, first take frame)]`` (the take: ``frames`` frames at ``fps``) as NLA
+    strips ``[(name, first scene frame, last scene frame)]`` back to back, each ending where the next begins, in the
+    frames its keys are written at (the scene's rate from ``frame_start``)."""
+    scale = float(scene_fps) / float(fps)
+    firsts = [int(round(frame_start + first * scale)) for _, first in segments]
+    last = int(round(frame_start + (frames - 1) * scale))
+    return [(prompt, a, b) for (prompt, _), a, b in zip(segments, firsts, firsts[1:] + [last]) if b > a]
