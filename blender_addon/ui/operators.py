@@ -146,26 +146,35 @@ class MLD_OT_generate(bpy.types.Operator):
         return True
 
     def execute(self, context):
-        from .preferences import get_prefs
-
-        settings = context.scene.mld_motion
-        obj = resolve_target(context)
-        try:
-            request = request_from_settings(settings, get_prefs(context), obj)
-        except RequestError as exc:
-            runtime.record_outcome(context.scene, error=str(exc))
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
         wait = self.wait or bpy.app.background
-        level, message = do_generate(
-            obj, context.scene, request, exact=settings.exact, set_frame_range=settings.set_frame_range, wait=wait
-        )
-        self.report({level}, message)
+        level = generate_from_panel(self, context, wait)
         runtime.tag_redraw()
         if not wait:
             # Nothing changed yet: no undo step now. The timer pushes exactly one when the keys land.
             return {"CANCELLED"}
         return {"FINISHED"} if level == "INFO" else {"CANCELLED"}
+
+
+def generate_from_panel(op, context, wait: bool, stop_live_preview: bool = False) -> str | None:
+    """The panel's settings as a request, generated and keyed onto the target (operators Generate and Keep);
+    reports on ``op`` and returns the report's level, or None when the settings are refused (nothing changes).
+    ``stop_live_preview``: turn Live Preview off first (it gives the armature back its Action)."""
+    from .preferences import get_prefs
+
+    settings = context.scene.mld_motion
+    obj = resolve_target(context)
+    try:
+        request = request_from_settings(settings, get_prefs(context), obj)
+    except RequestError as exc:
+        runtime.record_outcome(context.scene, error=str(exc))
+        op.report({"ERROR"}, str(exc))
+        return None
+    if stop_live_preview:
+        settings.live_preview = False
+    level, message = do_generate(obj, context.scene, request, exact=settings.exact,
+                                 set_frame_range=settings.set_frame_range, wait=wait)
+    op.report({level}, message)
+    return level
 
 
 class MLD_OT_keep_live(bpy.types.Operator):
@@ -188,20 +197,8 @@ class MLD_OT_keep_live(bpy.types.Operator):
         return True
 
     def execute(self, context):
-        from .preferences import get_prefs
-
-        settings = context.scene.mld_motion
-        obj = resolve_target(context)
-        try:
-            request = request_from_settings(settings, get_prefs(context), obj)
-        except RequestError as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
-        settings.live_preview = False  # cancels the preview and gives the armature back its Action
         wait = bpy.app.background
-        level, message = do_generate(obj, context.scene, request, exact=settings.exact,
-                                     set_frame_range=settings.set_frame_range, wait=wait)
-        self.report({level}, message)
+        level = generate_from_panel(self, context, wait, stop_live_preview=True)
         return {"FINISHED"} if wait and level == "INFO" else {"CANCELLED"}
 
 

@@ -44,7 +44,7 @@ class MLD_OT_sequence_edit(bpy.types.Operator):
 
 
 def draw(layout, settings) -> None:
-    """The list and its buttons; with rows, Generate makes them as one take."""
+    """The list and its buttons; with rows, Generate makes them as one take (with Push to NLA: one strip a segment)."""
     box = layout.box()
     box.label(text="Sequence (one take from these, in order)" if len(settings.sequence) else "Sequence",
               icon="SEQ_STRIP_DUPLICATE")
@@ -53,6 +53,8 @@ def draw(layout, settings) -> None:
     col = row.column(align=True)
     for action, icon in (("ADD", "ADD"), ("REMOVE", "REMOVE"), ("UP", "TRIA_UP"), ("DOWN", "TRIA_DOWN")):
         col.operator("mld.sequence_edit", text="", icon=icon).action = action
+    if len(settings.sequence):
+        box.prop(settings, "push_nla", text="One NLA Strip per Segment")
 
 
 classes = (MLD_UL_sequence, MLD_OT_sequence_edit)
