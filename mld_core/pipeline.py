@@ -11,6 +11,7 @@ eps = eps(z_t, t, null) + s * (eps(z_t, t, c) - eps(z_t, t, null)), D the VAE de
 from __future__ import annotations
 
 import time
+import warnings
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -82,6 +83,7 @@ class MLDPipeline:
             text_encoder.pack_for_cpu_inference()
         self.scheduler = DDIMScheduler(config.scheduler)
         self.draft_denoiser = None  # the Draft (consistency-distilled) denoiser, from draft.safetensors
+        self.draft_problem = ""  # why a model folder's Draft could not be loaded (from_pretrained)
         self.draft_scheduler = None
         if config.draft is not None and draft_denoiser is not None:
             self.draft_denoiser = draft_denoiser.eval().to(self.device, PRECISIONS[precision])
@@ -116,13 +118,18 @@ class MLDPipeline:
                     text_encoder = load_text_encoder(config.text_encoder)
                 except (ValueError, TypeError) as exc:
                     raise CheckpointError(f"{model_dir / 'config.json'}: text_encoder: {exc}") from None
-        draft = None
+        draft, draft_problem = None, ""
         if config.draft is not None and denoiser is not None:
-            draft = LatentDenoiser(config.draft.denoiser)
-            load_weights(model_dir / "draft.safetensors", draft)
+            try:  # a broken Draft costs only the Draft: Final still samples
+                draft = LatentDenoiser(config.draft.denoiser)
+                load_weights(model_dir / "draft.safetensors", draft)
+            except CheckpointError as exc:
+                draft, draft_problem = None, str(exc)
+                warnings.warn(f"Draft mode is unavailable: {exc}", stacklevel=2)
         if len(config.mean) != config.vae.feature_dim or len(config.std) != config.vae.feature_dim:
             raise CheckpointError(f"{model_dir / 'config.json'}: mean/std must have {config.vae.feature_dim} values")
         pipe = cls(config, vae, denoiser, text_encoder, device, precision, draft)
+        pipe.draft_problem = draft_problem
         try:
             pipe.coverage_index = load_for_model(model_dir)
         except ValueError as exc:
@@ -293,7 +300,8 @@ class MLDPipeline:
         if self.denoiser is None:
             raise CheckpointError("this model folder has only a VAE; sample with sample_prior() or train a denoiser")
         if draft and self.draft_denoiser is None:
-            raise CheckpointError(f"the model {self.model_id} has no Draft denoiser (draft.safetensors); make one with "
+            raise CheckpointError(f"Draft mode is unavailable: {self.draft_problem}" if self.draft_problem else
+                                  f"the model {self.model_id} has no Draft denoiser (draft.safetensors); make one with "
                                   "`python -m mld_core train draft`")
         timings = {}
         t_start = time.perf_counter()

@@ -139,7 +139,7 @@ class LCMScheduler(_Schedule):
         size = len(self.grid)
         if not 1 <= num_inference_steps <= size:
             raise ValueError(f"num_inference_steps must be in 1..{size} for this Draft model, got {num_inference_steps}")
-        picks = torch.linspace(size - 1, 0, num_inference_steps + 1)[:-1].round().long()
+        picks = (size - 1) - (torch.arange(num_inference_steps) * size) // num_inference_steps  # distinct, (n,)
         self.timesteps = self.grid[picks]
 
     def boundary(self, timesteps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

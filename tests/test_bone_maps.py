@@ -195,3 +195,6 @@ def test_ik_chains_resolve_against_the_rig_and_survive_json_and_rows():
     assert rows_to_map(map_to_rows(bone_map), map_extras(bone_map)).ik_controls == bone_map.ik_controls
     with pytest.raises(bm.BoneMapError, match="IK chain"):
         bm.ik_chains([{"fk": ["a", "b"], "ik": ["c", "d"]}])
+    for bad in ({"a": 1}, ["x"], "chains"):  # not a list of objects: a BoneMapError, no AttributeError
+        with pytest.raises(bm.BoneMapError, match="IK chain"):
+            bm.ik_chains(bad)

@@ -304,9 +304,14 @@ from mld_core.rig import bone_maps
 from test_retarget import iclone_like_rig
 mixamo = bone_maps.load_presets()["mixamo"].bones
 names = {{j: "mixamorig:" + mixamo[j][0].split(":")[-1] for j in mixamo}}  # the mixamo preset finds its Hips
-obj = rig_io.build_armature(iclone_like_rig(names), "iclone_like")
+from mld_core.rig import retarget as rt
+rig = iclone_like_rig(names)
+rig = rt.rig_from_heads(["placement"] + list(rig.names), [-1] + [p + 1 for p in rig.parents],  # a top control
+                        np.concatenate([[[0.0, 0.0, 0.0]], rig.heads]), np.concatenate([[[0.0, 0.0, 0.2]], rig.tails]))
+obj = rig_io.build_armature(rig, "iclone_like")
 link = obj.pose.bones["mixamorig:Hips"]  # between the root (Hip) and the thighs: not keyed
 link.rotation_quaternion = (0.9, 0.3, 0.1, 0.0)  # what a BVH import's motion leaves on it
+obj.pose.bones["placement"].location = (0.5, 0.0, 0.0)  # above every keyed bone: where the user put the character
 s = bpy.context.scene.mld_motion
 s.target = obj
 s.prompt, s.seconds, s.steps = "a person walks", 2.0, 2
@@ -319,6 +324,7 @@ out["root_location"] = "location" in keyed.get("Hip", set())
 out["link_keys"] = sorted(keyed.get("mixamorig:Hips", set()))
 bpy.context.scene.frame_set(bpy.context.scene.frame_start + 5)
 out["link_at_rest"] = bool(np.allclose(np.array(link.matrix_basis), np.eye(4), atol=1e-6))
+out["placement"] = [sorted(keyed.get("placement", set())), list(obj.pose.bones["placement"].location)]
 emit(out)
 """
 
@@ -331,3 +337,4 @@ def test_a_posed_link_between_keyed_bones_is_keyed_at_rest(tmp_path):
     assert r["generate"] == ["FINISHED"] and r["error"] == ""
     assert r["root_location"]  # the bone the pelvis and the spine hang from carries the root motion
     assert r["link_keys"] == ["location", "rotation_quaternion", "scale"] and r["link_at_rest"]
+    assert r["placement"] == [[], [0.5, 0.0, 0.0]]  # a control above the keyed bones keeps the user's placement

@@ -197,3 +197,22 @@ def test_draft_distillation_trains_resumes_and_installs(folder, tmp_path):
     assert main(["train", "draft", "--data", str(folder), "--teacher", str(tmp_path / "vae"), "--out",
                  str(tmp_path / "bad"), "--steps", "1"]) == 2  # a VAE-only folder has nothing to distil
     assert not (tmp_path / "bad").exists()
+
+
+@pytest.mark.parametrize("flags, config, words", [
+    (["--minutes", "0"], {}, "minutes must be above 0"),
+    (["--steps", "-5"], {}, "steps must be between"),
+    (["--lr", "-1"], {}, "lr must be between"),
+    ([], {"guidance_min": 6.0, "guidance_max": 4.0}, "guidance_min must be above 0 and at most guidance_max"),
+    ([], {"guidance_min": "high"}, "guidance_min must be a number"),
+    ([], {"save_every": 0}, "save_every must be between"),
+    ([], {"draft_steps": 60}, "draft_steps must be between 1 and 50"),
+], ids=["minutes", "steps", "lr", "guidance", "guidance-text", "save-every", "draft-steps"])
+def test_train_draft_refuses_bad_settings_before_any_work(folder, tmp_path, capsys, flags, config, words):
+    cfg = tmp_path / "draft.json"
+    cfg.write_text(json.dumps(config))
+    code = main(["train", "draft", "--data", str(folder), "--out", str(tmp_path / "run"), "--config", str(cfg),
+                 *flags])
+    err = capsys.readouterr().err
+    assert code == 2 and words in err and "Traceback" not in err, err
+    assert not (tmp_path / "run").exists()

@@ -130,7 +130,7 @@ def apply_result(obj, result, scene, *, exact: bool = True, set_frame_range: boo
         raise ValueError(problem)
     report = ApplyReport(fps=scene_fps(scene), nla=options.nla)
     planned, bone_map = plan_keys(obj, result, scene, options, bone_map, exact, report)
-    write_keys(obj, planned, bone_map, options, exact, scene.frame_start, assign, report, ik_controls)
+    write_keys(obj, planned, bone_map, options, exact, scene, assign, report, ik_controls)
     panel = getattr(scene, "mld_motion", None)
     if panel is not None and hasattr(panel, "last_reduction"):
         panel.last_reduction = report.reduction_ratio if report.retargeted and options.reduce else 1.0
@@ -173,7 +173,7 @@ def plan_keys(obj, result, scene, options: RetargetSettings, bone_map, exact: bo
     return planned, plan.bone_map
 
 
-def write_keys(obj, planned, bone_map, options: RetargetSettings, exact: bool, start: int, assign: bool,
+def write_keys(obj, planned, bone_map, options: RetargetSettings, exact: bool, scene, assign: bool,
                report: ApplyReport, ik_controls: bool = True) -> None:
     """One Action per planned take, through the one writer; fills ``report``. ``ik_controls``: also key the map's
     IK controls to match the FK pose (scene.ik_controls)."""
@@ -199,7 +199,7 @@ def write_keys(obj, planned, bone_map, options: RetargetSettings, exact: bool, s
             obj, keys, name, assign=assign and index == 0, nla=options.nla, properties=props,
             pose_properties=bone_map.pose_properties if report.retargeted else {}, segments=strips)
         if report.retargeted and ik_controls and bone_map.ik_controls:
-            report.ik_keys += key_ik_controls(obj, action, keys, bone_map.ik_controls)
+            report.ik_keys += key_ik_controls(obj, scene, action, keys, bone_map.ik_controls)
         report.reduction_ratios.append(float(keys.stats.get("reduction_ratio", 1.0)))
         report.key_seconds += seconds + time.perf_counter() - t0
         report.actions.append(action.name)
@@ -208,9 +208,9 @@ def write_keys(obj, planned, bone_map, options: RetargetSettings, exact: bool, s
             report.frames = keys.num_frames
 
 
-def key_ik_controls(obj, action, keys, chains) -> int:
-    """Key ``chains``' IK controls into ``action`` to match its FK pose (played for it, then the armature's
-    assignment restored); returns the keys written."""
+def key_ik_controls(obj, scene, action, keys, chains) -> int:
+    """Key ``chains``' IK controls into ``action`` to match its FK pose (played for it on ``scene``, the take's own,
+    then the armature's assignment restored); returns the keys written."""
     from . import ik_controls
 
     ad = obj.animation_data or obj.animation_data_create()
@@ -221,9 +221,7 @@ def key_ik_controls(obj, action, keys, chains) -> int:
         ad.action_slot = slot
     try:
         frames = keys.frame_start + np.arange(keys.num_frames, dtype=np.float64)
-        import bpy
-
-        curves = ik_controls.ik_curves(obj, bpy.context.scene, chains, frames)
+        curves = ik_controls.ik_curves(obj, scene, chains, frames)
         writer = write_action.ChannelWriter.of(action, obj)
         for curve in curves:
             write_action.write_keys(writer.fcurve(curve.data_path, curve.index, curve.group), curve.frames,

@@ -145,16 +145,20 @@ def set_pose_properties(obj, pose_properties: dict) -> list[str]:
 
 
 def posed_links(obj, keyed) -> list[str]:
-    """Bones without keys above keyed ones whose pose is not their rest (a BVH import leaves its motion's pose on
-    them when its Action is removed): the retargeting assumed them at rest, so the Action keys them there."""
+    """Bones without keys between keyed ones whose pose is not their rest (a BVH import leaves its motion's pose on
+    them when its Action is removed): the retargeting assumed them at rest, so the Action keys them there. Bones
+    above every keyed one (Rigify's root control) keep their pose: that is where the user placed the character."""
     keyed = set(keyed)
     links = set()
     for name in keyed:
         bone = obj.data.bones.get(name)
-        parent = bone.parent if bone is not None else None
+        parent, between = (bone.parent if bone is not None else None), []
         while parent is not None:
-            if parent.name not in keyed:
-                links.add(parent.name)
+            if parent.name in keyed:  # the unkeyed bones passed on the way up lie between two keyed ones
+                links.update(between)
+                between = []
+            else:
+                between.append(parent.name)
             parent = parent.parent
     identity = np.eye(4)
     return sorted(n for n in links

@@ -91,11 +91,14 @@ def preview_request(context):
 
 
 def key_plan(obj, scene, options, exact: bool):
-    """The armature's KeyPlan (its rest, bone map and road), read from the file once per Live Preview and
-    keying settings: the worker computes the keys from it, the main thread only writes them."""
+    """The armature's KeyPlan (its rest, bone map and road), read from the file once per Live Preview, keying
+    settings and stored bone map (edited in the Retarget panel meanwhile: read again): the worker computes the keys
+    from it, the main thread only writes them."""
     from ..scene.key_takes import read_plan, scene_fps
 
-    key = (getattr(obj, "session_uid", None), obj.name, options, exact, scene_fps(scene), scene.frame_start)
+    data = getattr(obj, "mld_retarget", None)
+    rows = tuple((row.joint, row.bone) for row in data.rows) + (data.extras,) if data is not None else ()
+    key = (getattr(obj, "session_uid", None), obj.name, options, exact, scene_fps(scene), scene.frame_start, rows)
     if key not in _plans:
         _plans.clear()
         _plans[key] = read_plan(obj, scene, options, None, exact)

@@ -142,8 +142,12 @@ class Preset:
 def ik_chains(data) -> list[dict]:
     """IK chains from JSON: each {"fk": [upper, lower, end], "ik": [root control, end control], optionally "pole"
     (the pole control)}; malformed ones raise BoneMapError."""
+    if data is not None and not isinstance(data, list):
+        raise BoneMapError(f"'ik_controls' must be a list of IK chains, got {data!r}")
     chains = []
     for chain in data or []:
+        if not isinstance(chain, dict):
+            raise BoneMapError(f"an IK chain is an object {{'fk': [...], 'ik': [...]}}, got {chain!r}")
         fk, ik = chain.get("fk"), chain.get("ik")
         optional = {k: chain[k] for k in ("pole",) if chain.get(k)}
         if not (isinstance(fk, list) and len(fk) == 3 and isinstance(ik, list) and len(ik) == 2

@@ -171,12 +171,14 @@ def run_draft(args) -> int:
         raise UsageError(f"--teacher {teacher} is not a model folder (no config.json)")
     over = _overrides(args, DraftTrainConfig)
 
-    def make_config():
-        cfg = DraftTrainConfig(data=args.data, teacher=str(teacher), out=str(args.out), seed=args.seed,
-                               threads=args.threads, steps=args.steps, minutes=args.minutes, **over)
-        cfg.lr = args.lr or cfg.lr
-        cfg.bf16 = cfg.bf16 or args.bf16
-        return cfg
+    if args.lr is not None:
+        over["lr"] = args.lr
+    if args.bf16:
+        over["bf16"] = True
+
+    def make_config():  # every setting is checked here (DraftTrainConfig.__post_init__), before any work
+        return DraftTrainConfig(data=args.data, teacher=str(teacher), out=str(args.out), seed=args.seed,
+                                threads=args.threads, steps=args.steps, minutes=args.minutes, **over)
 
     code = _run(train_draft, make_config, args.out, args.resume)
     if args.install:

@@ -24,7 +24,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from mld_core import inputs
 from mld_core.checkpoint import DraftConfig, load_config, load_weights, save_json, save_weights
+from mld_core.inputs import InputError
 from mld_core.models.denoiser import LatentDenoiser
 from mld_core.models.text_encoder import TextEmbedding
 from mld_core.models.vae import MotionVAE
@@ -61,6 +63,23 @@ class DraftTrainConfig:
     bf16: bool = False
     caches_from: str | None = None  # a denoiser run of the same VAE and data: reuse its latent and caption caches
 
+    def __post_init__(self):
+        """Every setting checked before any work (a bad one would train nothing, or a Draft that cannot load)."""
+        if self.steps is not None:
+            inputs.int_in_range(self.steps, "steps", 1, 10**9)
+        if self.minutes is not None and inputs.finite_number(self.minutes, "minutes") <= 0:
+            raise InputError(f"minutes must be above 0, got {self.minutes}")
+        for name, lo, hi in (("batch_size", 1, 65536), ("original_steps", 1, 1000), ("crops_per_clip", 1, 1000),
+                             ("save_every", 1, 10**9)):
+            inputs.int_in_range(getattr(self, name), name, lo, hi)
+        inputs.int_in_range(self.draft_steps, "draft_steps", 1, self.original_steps)
+        for name, lo, hi in (("lr", 1e-12, 1.0), ("ema_decay", 0.0, 0.999999), ("huber_c", 1e-12, 1.0),
+                             ("decay_start", 0.0, 1.0), ("balance_power", 0.0, 1.0)):
+            inputs.number_in_range(getattr(self, name), name, lo, hi)
+        if not 0 < inputs.finite_number(self.guidance_min, "guidance_min") <= inputs.finite_number(
+                self.guidance_max, "guidance_max"):
+            raise InputError("guidance_min must be above 0 and at most guidance_max")
+
 
 def huber(diff: torch.Tensor, c: float) -> torch.Tensor:
     """Pseudo-Huber loss per element: sqrt(d^2 + c^2) - c."""
@@ -75,8 +94,6 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
     base = load_config(teacher_dir)
     if base.denoiser is None or base.denoiser.cond != "text":
         raise ValueError(f"--teacher {teacher_dir} has no text-conditioned denoiser to distil")
-    if not 0 < cfg.guidance_min <= cfg.guidance_max:
-        raise ValueError("guidance_min must be above 0 and at most guidance_max")
     prepare_run_dir(out, resume)
     setup_torch(cfg.seed, cfg.threads)
     for name in (LATENT_CACHE, TEXT_CACHE) if cfg.caches_from and not resume else ():
@@ -110,7 +127,7 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
     draft.denoiser.guidance_input = True
     student = LatentDenoiser(draft.denoiser)
     student.load_state_dict(teacher.state_dict(), strict=False)  # all but the new guidance MLP
-    target = copy.deepcopy(student).requires_grad_(False)
+    target = copy.deepcopy(student).eval().requires_grad_(False)  # goals without dropout
     opt = torch.optim.AdamW(student.parameters(), lr=cfg.lr, weight_decay=0.0)
     step, _ = load_train_state(out, student, opt) if resume else (0, {})
     if resume and (out / DRAFT_WEIGHTS).is_file():
