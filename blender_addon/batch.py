@@ -86,7 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--armature", metavar="NAME", help="armature object to key (default: the canonical one)")
     parser.add_argument("--seconds", type=float, default=4.0, help="length of lines without a frame count (4)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the first take; take i uses seed+i (0)")
-    parser.add_argument("--steps", type=int, default=50, help="diffusion steps (50)")
+    parser.add_argument("--steps", type=int, default=50, help="diffusion steps (50; a Draft runs its model's own)")
     parser.add_argument("--guidance", type=float, default=None, help="guidance scale (default: the model's)")
     parser.add_argument("--draft", action="store_true",
                         help="Draft mode: the model's distilled denoiser in its own few steps (about 10x faster)")
@@ -518,7 +518,7 @@ def _manifest(args, paths, obj, map_source, pipe, model_dir, retarget, scene, re
         "settings": {
             "seconds": args.seconds,
             "seed": args.seed,
-            "steps": args.steps,
+            "steps": pipe.config.draft.num_inference_steps if args.draft else args.steps,  # the steps it ran
             "draft": args.draft,
             "guidance": args.guidance,
             "device": args.device,

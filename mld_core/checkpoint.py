@@ -38,6 +38,8 @@ class DraftConfig:
     original_steps: int = 50  # the DDIM grid it was distilled on
     timestep_scaling: float = 10.0
     sigma_data: float = 0.5
+    guidance_min: float = 3.0  # the guidance scales it was distilled for (an input of its denoiser)
+    guidance_max: float = 5.0
 
     def __post_init__(self):
         if isinstance(self.denoiser, dict):
@@ -176,12 +178,24 @@ def check_config(config: ModelConfig) -> None:
         raise ValueError("std must be positive")
     _check_repair(config.repair)
     if config.draft is not None:
-        steps = config.draft.num_inference_steps
-        if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= config.draft.original_steps:
-            raise ValueError(f"draft.num_inference_steps must be a whole number in 1..{config.draft.original_steps}, "
-                             f"got {steps!r}")
-        if not config.draft.denoiser.guidance_input:
-            raise ValueError("draft.denoiser must take the guidance scale as an input (guidance_input true)")
+        _check_draft(config.draft, config.scheduler.num_train_timesteps)
+
+
+def _check_draft(draft: DraftConfig, train_timesteps: int) -> None:
+    grid = draft.original_steps
+    if isinstance(grid, bool) or not isinstance(grid, int) or not 1 <= grid <= train_timesteps:
+        raise ValueError(f"draft.original_steps must be a whole number in 1..{train_timesteps}, got {grid!r}")
+    steps = draft.num_inference_steps
+    if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= grid:
+        raise ValueError(f"draft.num_inference_steps must be a whole number in 1..{grid}, got {steps!r}")
+    for name in ("timestep_scaling", "sigma_data", "guidance_min", "guidance_max"):
+        value = getattr(draft, name)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
+            raise ValueError(f"draft.{name} must be a finite number above 0, got {value!r}")
+    if draft.guidance_min > draft.guidance_max:
+        raise ValueError("draft.guidance_min must be at most draft.guidance_max")
+    if not draft.denoiser.guidance_input:
+        raise ValueError("draft.denoiser must take the guidance scale as an input (guidance_input true)")
 
 
 def _check_repair(repair: RepairConfig) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import warnings
 
 from mld_core.inputs import InputError, check_seed, check_threads
 
@@ -67,6 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     if func is None:
         parser.print_help()
         return 2
+    formatwarning, warnings.formatwarning = warnings.formatwarning, _warning_line
     try:
         check_common_options(args)
         return int(func(args) or 0)
@@ -76,6 +78,13 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    finally:
+        warnings.formatwarning = formatwarning
+
+
+def _warning_line(message, category, filename, lineno, line=None) -> str:
+    """A library warning as the command line's others are: one ``warning:`` line, no source location."""
+    return f"warning: {message}\n"
 
 
 if __name__ == "__main__":

@@ -198,7 +198,8 @@ def _run(args, take_report) -> int:
     # 2. The model, and what it can be asked.
     pipe = _load(args)
     if args.draft and pipe.draft_denoiser is None:
-        raise InputError(f"--draft: the model {pipe.model_id} has no Draft denoiser (make one with "
+        raise InputError(f"--draft: {pipe.draft_problem}" if pipe.draft_problem else
+                         f"--draft: the model {pipe.model_id} has no Draft denoiser (make one with "
                          "`python -m mld_core train draft`)")
     cond = pipe.denoiser.config.cond if pipe.denoiser is not None else "none"
     if args.action and cond != "action":

@@ -328,6 +328,11 @@ class MLDPipeline:
         steps = inputs.int_in_range(steps, "num_inference_steps", 1, self.config.draft.original_steps if draft else 1000)
         s = inputs.finite_number(self.config.guidance_scale if guidance_scale is None else guidance_scale,
                                  "guidance_scale")
+        if draft and cond_kind != "none":  # the Draft takes the scale as an input: only the scales it learnt
+            d = self.config.draft
+            if not d.guidance_min <= s <= d.guidance_max:
+                raise InputError(f"guidance_scale {s:g} is outside the {d.guidance_min:g}-{d.guidance_max:g} this "
+                                 "model's Draft was distilled for: pick one in that range, or use Final")
         num_variants = inputs.int_in_range(num_variants, "num_variants", 1, 1024)
         rows = [(i, v) for i in range(n_prompts) for v in range(num_variants)]
         row_prompts = [prompts[i] for i, _ in rows]

@@ -9,6 +9,7 @@ import torch
 from mld_core.checkpoint import CheckpointError
 from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser
 from mld_core.models.transformer import TransformerConfig
+from mld_core.inputs import InputError
 from mld_core.schedulers import DDIMScheduler, LCMScheduler
 from mld_core.testing import tiny_pipeline
 
@@ -85,8 +86,11 @@ def test_draft_rows_equal_single_runs_and_guidance_steers(pipe):
     both = pipe(["a person walks", "a person waves"], seconds=[1.5, 2.0], seed=[4, 9], draft=True)
     one = pipe(["a person waves"], seconds=2.0, seed=9, draft=True)
     assert np.allclose(both.joints[1, :40], one.joints[0], atol=1e-5)
-    other = pipe(["a person waves"], seconds=2.0, seed=9, draft=True, guidance_scale=8.0)
+    assert pipe.config.guidance_scale != 3.0
+    other = pipe(["a person waves"], seconds=2.0, seed=9, draft=True, guidance_scale=3.0)
     assert not np.allclose(other.joints, one.joints, atol=1e-4)
+    with pytest.raises(InputError, match="outside the 3-5 this model's Draft was distilled for"):
+        pipe(["a person waves"], seconds=2.0, draft=True, guidance_scale=8.0)  # a scale it never learnt
     again = pipe(["a person waves"], seconds=2.0, seed=9, draft=True)
     assert np.array_equal(again.joints, one.joints)
 
@@ -124,6 +128,12 @@ def test_a_bad_draft_section_is_a_checkpoint_error(tmp_path):
     (folder / "config.json").write_text(json.dumps(data))
     with pytest.raises(CheckpointError, match="draft.num_inference_steps"):
         load_config(folder)
+    for key, value, words in (("guidance_min", 9.0, "at most draft.guidance_max"), ("original_steps", 2.5,
+                              "draft.original_steps"), ("sigma_data", float("nan"), "draft.sigma_data")):
+        (folder / "config.json").write_text(json.dumps({**data, "draft": {**data["draft"], "num_inference_steps": 2,
+                                                                           key: value}}))
+        with pytest.raises(CheckpointError, match=words):
+            load_config(folder)
     (folder / "draft.safetensors").unlink()
     data["draft"]["num_inference_steps"] = 2
     (folder / "config.json").write_text(json.dumps(data))
@@ -177,3 +187,23 @@ def test_packed_text_encoder_equals_the_plain_one():
     texts = ["a person walks forward", "waves"]
     a, b = plain(texts), packed(texts)
     assert torch.allclose(a.tokens, b.tokens, atol=1e-5) and torch.allclose(a.pooled, b.pooled, atol=1e-6)
+
+
+def test_generate_draft_on_the_command_line(tmp_path, capsys):
+    from mld_core.cli import main
+    from mld_core.testing import tiny_model
+    from test_reliability import refused
+
+    model = tiny_model(tmp_path / "draft_model", draft=True)
+    assert main(["generate", "a person walks", "--model", str(model), "--draft", "--seconds", "2",
+                 "--out", str(tmp_path / "d.npz")]) == 0
+    assert np.load(tmp_path / "d.npz")["joints"].shape[:2] == (1, 40)
+    plain = tiny_model(tmp_path / "plain_model")
+    refused(["generate", "a person walks", "--model", plain, "--draft", "--out", tmp_path / "p.npz"], tmp_path, capsys,
+            "has no Draft denoiser")
+    refused(["generate", "a person walks", "--model", model, "--draft", "--guidance", "9", "--out",
+             tmp_path / "g.npz"], tmp_path, capsys, "outside the 3-5")
+    (model / "draft.safetensors").write_bytes(b"not safetensors")  # a broken Draft: Final still works
+    with pytest.warns(UserWarning, match="Draft mode is unavailable"):
+        refused(["generate", "a person walks", "--model", model, "--draft", "--out", tmp_path / "b.npz"], tmp_path,
+                capsys, "corrupt weights file")

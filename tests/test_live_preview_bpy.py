@@ -96,3 +96,18 @@ def test_draft_mode_and_live_preview(tmp_path):
     assert r["restored"] == [True, [], 0]  # off: the Action it had, no preview left behind
     assert r["keep"] == ["FINISHED"]
     assert r["kept"] == [True, False, [], False, 1]  # Keep: an ordinary Final take, Live Preview off
+
+
+def test_batch_draft_records_the_steps_it_ran(tmp_path):
+    import json
+
+    from bpy_util import run_python
+
+    model = tiny_model(tmp_path / "tiny", draft=True)
+    out = tmp_path / "takes.blend"
+    proc = run_python([REPO / "blender_addon" / "batch.py", "--prompt", "a person walks", "--model", model,
+                       "--draft", "--seconds", "2", "--out", out], user_dir=tmp_path / "user", timeout=240)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    manifest = json.loads(out.with_suffix(".json").read_text())
+    assert manifest["settings"]["draft"] is True and manifest["settings"]["steps"] == 2  # not --steps' 50
+    assert manifest["takes"][0]["steps"] == 2

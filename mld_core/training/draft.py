@@ -123,7 +123,8 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
     load_weights(teacher_dir / "denoiser.safetensors", teacher)
     teacher.eval().requires_grad_(False)
     draft = DraftConfig(denoiser=copy.deepcopy(base.denoiser), num_inference_steps=cfg.draft_steps,
-                        original_steps=cfg.original_steps)
+                        original_steps=cfg.original_steps, guidance_min=cfg.guidance_min,
+                        guidance_max=cfg.guidance_max)
     draft.denoiser.guidance_input = True
     student = LatentDenoiser(draft.denoiser)
     student.load_state_dict(teacher.state_dict(), strict=False)  # all but the new guidance MLP
