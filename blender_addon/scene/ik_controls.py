@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from mld_core.rig.bone_maps import chain_bones
 from mld_core.rig.keyframes import CurveKeys
 
 ROTATION_PROPS = {"QUATERNION": ("rotation_quaternion", 4), "AXIS_ANGLE": ("rotation_axis_angle", 4)}
@@ -21,8 +22,7 @@ ROTATION_PROPS = {"QUATERNION": ("rotation_quaternion", 4), "AXIS_ANGLE": ("rota
 
 def usable_chains(obj, chains) -> list[dict]:
     pose = obj.pose.bones
-    return [c for c in chains or ()
-            if all(b in pose for b in c["fk"] + c["ik"] + ([c["pole"]] if "pole" in c else []))]
+    return [c for c in chains or () if all(b in pose for b in chain_bones(c))]
 
 
 def ik_curves(obj, scene, chains, frames) -> list[CurveKeys]:

@@ -215,10 +215,7 @@ def key_ik_controls(obj, scene, action, keys, chains) -> int:
 
     ad = obj.animation_data or obj.animation_data_create()
     before = (ad.action, getattr(ad, "action_slot", None))
-    slot = write_action.action_slot(action)
-    ad.action = action
-    if slot is not None:
-        ad.action_slot = slot
+    write_action.assign_action(obj, action)
     try:
         frames = keys.frame_start + np.arange(keys.num_frames, dtype=np.float64)
         curves = ik_controls.ik_curves(obj, scene, chains, frames)
@@ -228,7 +225,5 @@ def key_ik_controls(obj, scene, action, keys, chains) -> int:
                                     curve.values, keys.interpolation, handle_type=keys.handle_type,
                                     auto_smoothing=keys.auto_smoothing)
     finally:
-        ad.action = before[0]
-        if before[0] is not None and before[1] is not None:
-            ad.action_slot = before[1]
+        write_action.assign_action(obj, before[0], before[1] if before[0] is not None else None)
     return int(sum(len(c.frames) for c in curves))

@@ -3,6 +3,8 @@ pending; Accept keeps them as ordinary takes, Reject deletes them and gives the 
 
 from __future__ import annotations
 
+from .write_action import assign_action
+
 PENDING = "mld_pending_actions"  # custom properties on the armature object
 PREVIOUS = "mld_previous_action"
 
@@ -16,7 +18,7 @@ def mark_pending(obj, actions: list[str], previous: str) -> None:
         new = ad.action if ad is not None and ad.action is not None and ad.action.name in actions else None
         reject(obj)
         if new is not None:  # the rejection gave the armature its old Action back: the new take plays instead
-            _assign(obj, new)
+            assign_action(obj, new)
     obj[PENDING] = ",".join(actions)
     obj[PREVIOUS] = previous
 
@@ -43,22 +45,13 @@ def reject(obj) -> str:
         for track in list(ad.nla_tracks):
             if any(s.action is not None and s.action.name in names for s in track.strips):
                 ad.nla_tracks.remove(track)
-        _assign(obj, previous)
+        assign_action(obj, previous)
     for name in names:
         action = bpy.data.actions.get(name)
         if action is not None:
             bpy.data.actions.remove(action)
     _clear(obj)
     return f"Removed {', '.join(names)}" if names else "Nothing to reject"
-
-
-def _assign(obj, action) -> None:
-    from .write_action import action_slot
-
-    obj.animation_data.action = action
-    slot = action_slot(action) if action is not None else None
-    if slot is not None:
-        obj.animation_data.action_slot = slot
 
 
 def _clear(obj) -> None:

@@ -59,10 +59,16 @@ class ChannelWriter:
         return writer
 
     def assign(self) -> None:
-        ad = self.obj.animation_data or self.obj.animation_data_create()
-        ad.action = self.action
-        if self.slot is not None:
-            ad.action_slot = self.slot
+        assign_action(self.obj, self.action, self.slot)
+
+
+def assign_action(obj, action, slot=None) -> None:
+    """Play ``action`` (or nothing, None) on ``obj``: assign it and its slot (default: the Action's own)."""
+    ad = obj.animation_data or obj.animation_data_create()
+    ad.action = action
+    slot = slot if slot is not None else (action_slot(action) if action is not None else None)
+    if slot is not None:
+        ad.action_slot = slot
 
 
 def fcurves_of(action, obj=None) -> list:

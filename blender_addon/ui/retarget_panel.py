@@ -96,8 +96,7 @@ def do_load_map(obj, path: str) -> tuple[str, str]:
     present = bone_maps.BoneMap(
         {j: b for j, b in bone_map.joints.items() if b in names}, source="file",
         parent_overrides=bone_map.parent_overrides, pose_properties=bone_map.pose_properties,
-        ik_controls=[c for c in bone_map.ik_controls
-                     if all(b in names for b in c["fk"] + c["ik"] + ([c["pole"]] if "pole" in c else []))],
+        ik_controls=[c for c in bone_map.ik_controls if all(b in names for b in bone_maps.chain_bones(c))],
     )
     absent = sorted(j for j, b in bone_map.joints.items() if b not in names)
     store_map(obj, present)

@@ -158,6 +158,11 @@ def ik_chains(data) -> list[dict]:
     return chains
 
 
+def chain_bones(chain: dict) -> list[str]:
+    """Every bone an IK chain names: its FK bones, its IK controls and its pole (if any)."""
+    return chain["fk"] + chain["ik"] + ([chain["pole"]] if "pole" in chain else [])
+
+
 def load_presets(directory: str | os.PathLike | None = None) -> dict[str, Preset]:
     """All presets in ``directory`` (default: the add-on's presets folder), by name, in a stable order."""
     directory = Path(directory) if directory is not None else PRESET_DIR

@@ -53,14 +53,17 @@ def _check_data(path: str) -> None:
 
 def _init_dir(args) -> str | None:
     """--init's model folder (checked: a model folder with a config.json), "default" meaning the bundled one."""
-    if args.init is None:
-        return None
+    return None if args.init is None else str(_model_folder(args.init, "--init"))
+
+
+def _model_folder(value: str | None, flag: str) -> Path:
+    """A model folder named by ``flag`` (None or "default": the bundled one), checked to hold a config.json."""
     from mld_core.checkpoint import DEFAULT_MODEL_DIR
 
-    path = DEFAULT_MODEL_DIR if args.init == "default" else Path(args.init)
+    path = DEFAULT_MODEL_DIR if value in (None, "default") else Path(value)
     if not (path / "config.json").is_file():
-        raise UsageError(f"--init {path} is not a model folder (no config.json)")
-    return str(path)
+        raise UsageError(f"{flag} {path} is not a model folder (no config.json)")
+    return path
 
 
 def _overrides(args, config_class) -> dict:
@@ -162,13 +165,10 @@ def _denoiser_config(args, over: dict):
 
 
 def run_draft(args) -> int:
-    from mld_core.checkpoint import DEFAULT_MODEL_DIR
     from mld_core.training.draft import DraftTrainConfig, install_draft, train_draft
 
     _check_data(args.data)
-    teacher = Path(args.teacher) if args.teacher else DEFAULT_MODEL_DIR
-    if not (teacher / "config.json").is_file():
-        raise UsageError(f"--teacher {teacher} is not a model folder (no config.json)")
+    teacher = _model_folder(args.teacher, "--teacher")
     over = _overrides(args, DraftTrainConfig)
 
     if args.lr is not None:
