@@ -113,6 +113,7 @@ class ModelLimits:
     fps: int = MODEL_FPS
     min_frames: int = int(round(DEFAULT_MIN_SECONDS * MODEL_FPS))
     max_frames: int = int(round(DEFAULT_MAX_SECONDS * MODEL_FPS))
+    draft_guidance: tuple[float, float] | None = None  # the guidance scales its Draft learnt (None: no Draft)
 
     @property
     def min_seconds(self) -> float:
@@ -130,8 +131,11 @@ def model_limits(model_dir=None) -> ModelLimits:
         model_dir = Path(__file__).resolve().parent / "weights" / "default"
     try:
         data = json.loads((Path(model_dir) / "config.json").read_text(encoding="utf-8"))
+        draft = data.get("draft")
         limits = ModelLimits(int(data.get("fps", MODEL_FPS)), int(data.get("min_frames", 40)),
-                             int(data.get("max_frames", 196)))
+                             int(data.get("max_frames", 196)),
+                             (float(draft.get("guidance_min", 3.0)), float(draft.get("guidance_max", 5.0)))
+                             if isinstance(draft, dict) else None)
     except (OSError, ValueError, TypeError, AttributeError):
         return ModelLimits()
     if limits.fps < 1 or not 1 <= limits.min_frames <= limits.max_frames:
@@ -273,13 +277,15 @@ def validate_request(prompt, seconds=4.0, seed=0, steps=50, guidance=None, varia
     if min_seconds is not None or max_seconds is not None:
         lo = limits.min_seconds if min_seconds is None else float(min_seconds)
         hi = limits.max_seconds if max_seconds is None else float(max_seconds)
-        limits = ModelLimits(MODEL_FPS, int(round(lo * MODEL_FPS)), int(round(hi * MODEL_FPS)))
+        limits = ModelLimits(MODEL_FPS, int(round(lo * MODEL_FPS)), int(round(hi * MODEL_FPS)), limits.draft_guidance)
     seconds = check_seconds(seconds, limits)
     variants = int_in_range(variants, "Variants", 1, MAX_VARIANTS)
     seed = check_seed(seed, variants)
     steps = check_steps(steps)
     guidance = check_guidance(guidance)
     threads = check_threads(threads)
+    if draft:
+        check_draft(guidance, limits)
     device = str(device or "cpu").strip().lower()
     if device not in {"cpu", "cuda", "mps", "auto"}:
         raise InputError(f"Unknown device {device!r}; use cpu, cuda, mps or auto")
@@ -287,6 +293,17 @@ def validate_request(prompt, seconds=4.0, seed=0, steps=50, guidance=None, varia
     return GenerateRequest(prompt=text, seconds=seconds, seed=seed, steps=steps, guidance=guidance,
                            variants=variants, model_dir=model_dir or None, device=device, threads=threads,
                            draft=bool(draft))
+
+
+def check_draft(guidance: float | None, limits: ModelLimits) -> None:
+    """Draft mode needs a model with a Draft, and a guidance scale (None: the model's) among those it learnt."""
+    if limits.draft_guidance is None:
+        raise InputError("This model has no Draft denoiser: use Final, or make one with `python -m mld_core train "
+                         "draft` (docs/draft.md)")
+    lo, hi = limits.draft_guidance
+    if guidance is not None and not lo <= guidance <= hi:
+        raise InputError(f"Guidance {guidance:g} is outside the {lo:g}-{hi:g} this model's Draft was distilled for: "
+                         "pick one in that range, or use Final")
 
 
 # -- output paths -------------------------------------------------------------------------------------------------

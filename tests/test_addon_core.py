@@ -510,7 +510,8 @@ def test_a_draft_request_reaches_the_pipeline_with_its_own_steps(tmp_path):
     from mld_core.testing import tiny_pipeline
 
     pipe = tiny_pipeline(tmp_path / "m", draft=True)
-    request = validate_request("a person walks", 2.0, 3, 50, None, 1, draft=True).with_(extra={"rank": False})
+    request = validate_request("a person walks", 2.0, 3, 50, None, 1, draft=True,
+                               model_dir=tmp_path / "m").with_(extra={"rank": False})
     result = generate(pipe, request)
     take = result.takes[0]
     assert take.steps == 2 and take.provenance()["mld_draft"] is True and take.badges is None

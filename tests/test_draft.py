@@ -207,3 +207,16 @@ def test_generate_draft_on_the_command_line(tmp_path, capsys):
     with pytest.warns(UserWarning, match="Draft mode is unavailable"):
         refused(["generate", "a person walks", "--model", model, "--draft", "--out", tmp_path / "b.npz"], tmp_path,
                 capsys, "corrupt weights file")
+
+
+def test_a_draft_request_is_checked_against_the_model_before_any_work(tmp_path):
+    from mld_core.inputs import validate_request
+    from mld_core.testing import tiny_model
+
+    with_draft, plain = tiny_model(tmp_path / "d", draft=True), tiny_model(tmp_path / "p")
+    assert validate_request("a walk", draft=True, model_dir=with_draft, guidance=4.5).draft
+    with pytest.raises(InputError, match="no Draft denoiser"):  # the panel and the batch say so before a job runs
+        validate_request("a walk", draft=True, model_dir=plain)
+    with pytest.raises(InputError, match="outside the 3-5"):
+        validate_request("a walk", draft=True, model_dir=with_draft, guidance=7.5)
+    assert not validate_request("a walk", model_dir=plain, guidance=7.5).draft  # Final: any scale
