@@ -40,6 +40,7 @@ class DraftConfig:
     sigma_data: float = 0.5
     guidance_min: float = 3.0  # the guidance scales it was distilled for (an input of its denoiser)
     guidance_max: float = 5.0
+    guidance_scale: float | None = None  # the Draft's default scale (None: the model's guidance_scale)
 
     def __post_init__(self):
         if isinstance(self.denoiser, dict):
@@ -194,6 +195,11 @@ def _check_draft(draft: DraftConfig, train_timesteps: int) -> None:
             raise ValueError(f"draft.{name} must be a finite number above 0, got {value!r}")
     if draft.guidance_min > draft.guidance_max:
         raise ValueError("draft.guidance_min must be at most draft.guidance_max")
+    scale = draft.guidance_scale
+    if scale is not None and (isinstance(scale, bool) or not isinstance(scale, (int, float))
+                              or not draft.guidance_min <= scale <= draft.guidance_max):
+        raise ValueError(f"draft.guidance_scale must be null or between draft.guidance_min and guidance_max, "
+                         f"got {scale!r}")
     if not draft.denoiser.guidance_input:
         raise ValueError("draft.denoiser must take the guidance scale as an input (guidance_input true)")
 

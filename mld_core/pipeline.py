@@ -282,6 +282,13 @@ class MLDPipeline:
             self._quality = QualityScorer.from_pretrained(text_encoder=self.text_encoder)
         return self._quality
 
+    def default_guidance(self, draft: bool = False) -> float:
+        """The guidance scale a call without one uses: the Draft's own (config ``draft.guidance_scale``) in Draft
+        mode, else the model's."""
+        if draft and self.config.draft is not None and self.config.draft.guidance_scale is not None:
+            return float(self.config.draft.guidance_scale)
+        return float(self.config.guidance_scale)
+
     # -- sampling -------------------------------------------------------------------------------------------------
     @torch.inference_mode()
     def __call__(self, prompts: str | Sequence[str], seconds: float | Sequence[float] = 4.0, *,
@@ -326,7 +333,7 @@ class MLDPipeline:
         default_steps = self.config.draft.num_inference_steps if draft else self.config.num_inference_steps
         steps = default_steps if num_inference_steps is None else num_inference_steps
         steps = inputs.int_in_range(steps, "num_inference_steps", 1, self.config.draft.original_steps if draft else 1000)
-        s = inputs.finite_number(self.config.guidance_scale if guidance_scale is None else guidance_scale,
+        s = inputs.finite_number(self.default_guidance(draft) if guidance_scale is None else guidance_scale,
                                  "guidance_scale")
         if draft and cond_kind != "none":  # the Draft takes the scale as an input: only the scales it learnt
             d = self.config.draft

@@ -220,3 +220,25 @@ def test_a_draft_request_is_checked_against_the_model_before_any_work(tmp_path):
     with pytest.raises(InputError, match="outside the 3-5"):
         validate_request("a walk", draft=True, model_dir=with_draft, guidance=7.5)
     assert not validate_request("a walk", model_dir=plain, guidance=7.5).draft  # Final: any scale
+
+
+def test_a_draft_has_its_own_default_guidance(tmp_path):
+    import json
+
+    from mld_core.pipeline import MLDPipeline
+    from mld_core.testing import tiny_model
+
+    folder = tiny_model(tmp_path / "m", draft=True)
+    data = json.loads((folder / "config.json").read_text())
+    data["draft"]["guidance_scale"] = 3.0
+    (folder / "config.json").write_text(json.dumps(data))
+    pipe = MLDPipeline.from_pretrained(folder)
+    assert pipe.default_guidance(draft=True) == 3.0 and pipe.default_guidance() == pipe.config.guidance_scale != 3.0
+    own = pipe("a person walks", 1.5, seed=2, draft=True)
+    assert np.array_equal(own.joints, pipe("a person walks", 1.5, seed=2, draft=True, guidance_scale=3.0).joints)
+    assert not np.allclose(own.joints, pipe("a person walks", 1.5, seed=2, draft=True,
+                                            guidance_scale=pipe.config.guidance_scale).joints, atol=1e-4)
+    data["draft"]["guidance_scale"] = 9.0  # outside what it learnt
+    (folder / "config.json").write_text(json.dumps(data))
+    with pytest.raises(CheckpointError, match="draft.guidance_scale"):
+        MLDPipeline.from_pretrained(folder)

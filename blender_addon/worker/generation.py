@@ -130,7 +130,9 @@ def generate(pipe, request: GenerateRequest, callback=None, check_cancel=None) -
         used_steps = getattr(getattr(getattr(pipe, "config", None), "draft", None), "num_inference_steps", 0)
     used_guidance = guidance
     if used_guidance is None:
-        used_guidance = getattr(getattr(pipe, "config", None), "guidance_scale", None)
+        default = getattr(pipe, "default_guidance", None)
+        used_guidance = default(request.draft) if default is not None else \
+            getattr(getattr(pipe, "config", None), "guidance_scale", None)
     fps = int(getattr(out, "fps", 20) or 20)
     model_id = getattr(out, "model_id", "") or getattr(pipe, "model_id", "") or ""
     t0 = time.perf_counter()

@@ -54,6 +54,7 @@ class DraftTrainConfig:
     ema_decay: float = 0.95  # the target network (LCM's target_unet)
     guidance_min: float = 3.0
     guidance_max: float = 5.0
+    default_guidance: float | None = 3.0  # the Draft's default scale (None: the model's); 3 measured best (draft.md)
     original_steps: int = 50
     huber_c: float = 0.001
     draft_steps: int = 2  # the Draft's default number of steps, written into config.json
@@ -79,6 +80,8 @@ class DraftTrainConfig:
         if not 0 < inputs.finite_number(self.guidance_min, "guidance_min") <= inputs.finite_number(
                 self.guidance_max, "guidance_max"):
             raise InputError("guidance_min must be above 0 and at most guidance_max")
+        if self.default_guidance is not None:
+            inputs.number_in_range(self.default_guidance, "default_guidance", self.guidance_min, self.guidance_max)
 
 
 def huber(diff: torch.Tensor, c: float) -> torch.Tensor:
@@ -124,7 +127,7 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
     teacher.eval().requires_grad_(False)
     draft = DraftConfig(denoiser=copy.deepcopy(base.denoiser), num_inference_steps=cfg.draft_steps,
                         original_steps=cfg.original_steps, guidance_min=cfg.guidance_min,
-                        guidance_max=cfg.guidance_max)
+                        guidance_max=cfg.guidance_max, guidance_scale=cfg.default_guidance)
     draft.denoiser.guidance_input = True
     student = LatentDenoiser(draft.denoiser)
     student.load_state_dict(teacher.state_dict(), strict=False)  # all but the new guidance MLP
