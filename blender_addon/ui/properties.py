@@ -67,10 +67,10 @@ class MLD_SceneSettings(bpy.types.PropertyGroup):
                       update=_setting_changed)
     mode: EnumProperty(
         name="Mode",
-        description="Draft: the model's distilled denoiser in a few steps, about 10x faster, for trying prompts; "
+        description="Draft: the model's distilled denoiser in a few steps, about 8x faster, for trying prompts; "
         "Final: the full sampler (Steps)",
         items=[("FINAL", "Final", "The full sampler with the Steps below"),
-               ("DRAFT", "Draft", "A few steps of the distilled denoiser: about 10x faster")],
+               ("DRAFT", "Draft", "A few steps of the distilled denoiser: about 8x faster")],
         default="FINAL",
     )
     live_preview: BoolProperty(
