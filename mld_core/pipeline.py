@@ -337,9 +337,7 @@ class MLDPipeline:
                                  "guidance_scale")
         if draft and cond_kind != "none":  # the Draft takes the scale as an input: only the scales it learnt
             d = self.config.draft
-            if not d.guidance_min <= s <= d.guidance_max:
-                raise InputError(f"guidance_scale {s:g} is outside the {d.guidance_min:g}-{d.guidance_max:g} this "
-                                 "model's Draft was distilled for: pick one in that range, or use Final")
+            inputs.check_draft(s, inputs.ModelLimits(draft_guidance=(d.guidance_min, d.guidance_max)))
         num_variants = inputs.int_in_range(num_variants, "num_variants", 1, 1024)
         rows = [(i, v) for i in range(n_prompts) for v in range(num_variants)]
         row_prompts = [prompts[i] for i, _ in rows]
