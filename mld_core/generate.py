@@ -122,7 +122,7 @@ def _checked_args(args) -> tuple[list[PromptLine], list[float], object]:
     inputs.check_seed(args.seed, len(lines) * variants, "--seed")
     if args.steps is not None:
         inputs.check_steps(args.steps, "--steps")
-    inputs.check_guidance(args.guidance, "--guidance")
+    args.guidance = inputs.check_guidance(args.guidance, "--guidance")  # 0: the model's default (None)
     inputs.check_fps(args.fps, "--fps")
     default = inputs.finite_number(args.seconds, "--seconds")
     limits = inputs.model_limits(args.model)

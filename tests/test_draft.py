@@ -203,6 +203,8 @@ def test_generate_draft_on_the_command_line(tmp_path, capsys):
             "has no Draft denoiser")
     refused(["generate", "a person walks", "--model", model, "--draft", "--guidance", "9", "--out",
              tmp_path / "g.npz"], tmp_path, capsys, "outside the 3-5")
+    assert main(["generate", "a person walks", "--model", str(model), "--draft", "--guidance", "0", "--seconds", "2",
+                 "--out", str(tmp_path / "g0.npz")]) == 0  # 0 is the model's default, as --help says
     (model / "draft.safetensors").write_bytes(b"not safetensors")  # a broken Draft: Final still works
     with pytest.warns(UserWarning, match="Draft mode is unavailable"):
         refused(["generate", "a person walks", "--model", model, "--draft", "--out", tmp_path / "b.npz"], tmp_path,
