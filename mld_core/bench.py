@@ -94,9 +94,8 @@ def time_pipeline(pipe, prompts: Sequence[str], *, seconds: float = 4.0, batch_s
     batches = [prompts[i : i + batch_size] for i in range(0, len(prompts), batch_size)]
     for _ in range(warmup):
         pipe(batches[0], seconds=seconds, seed=0, **kw)
-    cache = getattr(pipe, "_text_cache", None)
-    if cache is not None:  # every prompt timed cold: its text is encoded
-        cache.clear()
+    if hasattr(pipe, "clear_text_cache"):  # every prompt timed cold: its text is encoded
+        pipe.clear_text_cache()
     parts = {"condition_s": 0.0, "diffusion_s": 0.0, "decode_s": 0.0}
     timed, wall = 0.0, 0.0
     for k, batch in enumerate(tqdm(batches, desc=f"MLD batch {batch_size}", leave=False, disable=not progress)):

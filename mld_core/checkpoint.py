@@ -41,6 +41,7 @@ class DraftConfig:
     guidance_min: float = 3.0  # the guidance scales it was distilled for (an input of its denoiser)
     guidance_max: float = 5.0
     guidance_scale: float | None = None  # the Draft's default scale (None: the model's guidance_scale)
+    fresh_noise: float = 1.0  # share of new noise when re-noising between steps (LCMScheduler; 1: LCM's sampler)
 
     def __post_init__(self):
         if isinstance(self.denoiser, dict):
@@ -200,6 +201,9 @@ def _check_draft(draft: DraftConfig, train_timesteps: int) -> None:
                               or not draft.guidance_min <= scale <= draft.guidance_max):
         raise ValueError(f"draft.guidance_scale must be null or between draft.guidance_min and guidance_max, "
                          f"got {scale!r}")
+    fresh = draft.fresh_noise
+    if isinstance(fresh, bool) or not isinstance(fresh, (int, float)) or not 0.0 <= fresh <= 1.0:
+        raise ValueError(f"draft.fresh_noise must be a number in 0..1, got {fresh!r}")
     if not draft.denoiser.guidance_input:
         raise ValueError("draft.denoiser must take the guidance scale as an input (guidance_input true)")
 

@@ -120,11 +120,19 @@ class LCMScheduler(_Schedule):
     """Multistep sampling of a latent consistency model (Luo et al. 2023; MotionLCM): the model's noise prediction
     at x_t gives the clean estimate f(x_t, t) = c_skip(t) x_t + c_out(t) x0(eps); between steps the estimate is
     noised again to the next timestep. Timesteps come from the ``original_steps``-point DDIM grid the model was
-    distilled on (``skip`` = its spacing, the distillation's step from t to t - skip)."""
+    distilled on (``skip`` = its spacing, the distillation's step from t to t - skip).
+
+    ``fresh_noise`` (gamma, 0..1) is the share of new noise in the re-noising: 1 is LCM's own sampler (new noise at
+    every step); 0 re-noises with the noise the step itself implies, eps = (x_t - sqrt(a_t) f(x_t)) / sqrt(1 - a_t),
+    so the next step continues the same sample as a DDIM step would; in between, sqrt(1 - gamma) of the implied
+    noise plus sqrt(gamma) of new noise (unit variance either way)."""
 
     def __init__(self, config: SchedulerConfig | None = None, original_steps: int = 50, timestep_scaling: float = 10.0,
-                 sigma_data: float = 0.5):
+                 sigma_data: float = 0.5, fresh_noise: float = 1.0):
         super().__init__(config)
+        if not 0.0 <= fresh_noise <= 1.0:
+            raise ValueError(f"fresh_noise must be in 0..1, got {fresh_noise}")
+        self.fresh_noise = float(fresh_noise)
         n_train = self.config.num_train_timesteps
         if not 1 <= original_steps <= n_train:
             raise ValueError(f"original_steps must be in 1..{n_train}, got {original_steps}")
@@ -160,17 +168,27 @@ class LCMScheduler(_Schedule):
 
     def step(self, model_output: torch.Tensor, timestep: int, sample: torch.Tensor,
              noise: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """One step from ``timestep``; returns (next sample, clean estimate). Before the last step ``noise`` (like
-        sample) re-noises the estimate to the next timestep; at the last step the next sample is the estimate."""
+        """One step from ``timestep``; returns (next sample, clean estimate). Before the last step the estimate is
+        re-noised to the next timestep with ``noise`` (like sample; needed unless ``fresh_noise`` is 0) mixed with
+        the step's implied noise; at the last step the next sample is the estimate."""
         t = int(timestep)
         denoised = self.denoised(model_output, torch.tensor(t), sample)
         later = (self.timesteps < t).nonzero()
         if len(later) == 0:
             return denoised, denoised
-        if noise is None:
-            raise ValueError("LCM steps before the last need noise")
+        if noise is None and self.needs_noise:
+            raise ValueError("LCM steps before the last need noise unless fresh_noise is 0")
+        a_t = self.alphas_cumprod[t].to(sample.dtype)
+        implied = (sample - a_t.sqrt() * denoised) / (1 - a_t).sqrt()
+        g = self.fresh_noise
+        mixed = implied if not self.needs_noise else (1 - g) ** 0.5 * implied + g ** 0.5 * noise
         a_next = self.alphas_cumprod[int(self.timesteps[later[0, 0]])]
-        return a_next.sqrt() * denoised + (1 - a_next).sqrt() * noise, denoised
+        return a_next.sqrt() * denoised + (1 - a_next).sqrt() * mixed, denoised
+
+    @property
+    def needs_noise(self) -> bool:
+        """Whether steps before the last need new noise (``fresh_noise`` > 0)."""
+        return self.fresh_noise > 0
 
     def teacher_step(self, model_output: torch.Tensor, timesteps: torch.Tensor, sample: torch.Tensor) -> torch.Tensor:
         """The distillation's ODE step: a DDIM (eta 0) step from each x_t to t - skip, timesteps (B,) >= skip."""

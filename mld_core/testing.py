@@ -51,8 +51,9 @@ def tiny_model(model_dir: str | Path, seed: int = 0, cond: str = "text", draft: 
     return save_model(model_dir, config, vae, denoiser, card="# tiny random test model\n")
 
 
-def tiny_pipeline(model_dir: str | Path, seed: int = 0, cond: str = "text", **kwargs):
-    """A pipeline over a tiny random model saved in ``model_dir`` (for tests; its motions are noise)."""
+def tiny_pipeline(model_dir: str | Path, seed: int = 0, cond: str = "text", draft_precision: str = "fp32", **kwargs):
+    """A pipeline over a tiny random model saved in ``model_dir`` (for tests; its motions are noise). Its Draft runs
+    in ``draft_precision`` (fp32 by default, so tests give the same numbers on every CPU)."""
     from mld_core.pipeline import MLDPipeline
 
-    return MLDPipeline.from_pretrained(tiny_model(model_dir, seed, cond, **kwargs))
+    return MLDPipeline.from_pretrained(tiny_model(model_dir, seed, cond, **kwargs), draft_precision=draft_precision)

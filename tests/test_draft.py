@@ -65,6 +65,26 @@ def test_multistep_renoises_between_steps_and_returns_the_estimate_at_the_last()
         s.step(eps, 981, x)
 
 
+def test_renoising_with_the_implied_noise_continues_the_same_sample():
+    x, eps, noise = torch.randn(1, 2, 4), torch.randn(1, 2, 4), torch.randn(1, 2, 4)
+    steps = {}
+    for gamma in (0.0, 0.5, 1.0):
+        s = LCMScheduler(fresh_noise=gamma)
+        s.set_timesteps(2)
+        steps[gamma], est = s.step(eps, 981, x, noise if gamma else None)
+    a_t, a_next = s.alphas_cumprod[981], s.alphas_cumprod[481]
+    implied = (x - a_t.sqrt() * est) / (1 - a_t).sqrt()  # the noise that takes the estimate back to x at t = 981
+    assert torch.allclose(a_t.sqrt() * est + (1 - a_t).sqrt() * implied, x, atol=1e-5)
+    assert torch.allclose(steps[0.0], a_next.sqrt() * est + (1 - a_next).sqrt() * implied, atol=1e-5)
+    assert torch.allclose(steps[1.0], a_next.sqrt() * est + (1 - a_next).sqrt() * noise, atol=1e-5)
+    half = a_next.sqrt() * est + (1 - a_next).sqrt() * (0.5 ** 0.5 * implied + 0.5 ** 0.5 * noise)
+    assert torch.allclose(steps[0.5], half, atol=1e-5)
+    assert not LCMScheduler(fresh_noise=0.0).needs_noise and LCMScheduler().needs_noise
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValueError, match="fresh_noise"):
+            LCMScheduler(fresh_noise=bad)
+
+
 # -- the Draft denoiser ------------------------------------------------------------------------------------------
 def test_a_fresh_student_with_a_guidance_input_predicts_what_its_teacher_does():
     block = TransformerConfig(dim=32, heads=2, ff_dim=64, layers=1, dropout=0.0)
@@ -129,7 +149,8 @@ def test_a_bad_draft_section_is_a_checkpoint_error(tmp_path):
     with pytest.raises(CheckpointError, match="draft.num_inference_steps"):
         load_config(folder)
     for key, value, words in (("guidance_min", 9.0, "at most draft.guidance_max"), ("original_steps", 2.5,
-                              "draft.original_steps"), ("sigma_data", float("nan"), "draft.sigma_data")):
+                              "draft.original_steps"), ("sigma_data", float("nan"), "draft.sigma_data"),
+                              ("fresh_noise", 1.5, "draft.fresh_noise"), ("fresh_noise", "all", "draft.fresh_noise")):
         (folder / "config.json").write_text(json.dumps({**data, "draft": {**data["draft"], "num_inference_steps": 2,
                                                                            key: value}}))
         with pytest.raises(CheckpointError, match=words):
@@ -156,7 +177,7 @@ def test_each_prompt_is_encoded_once_and_the_cache_is_bounded(pipe, monkeypatch)
         seen.extend(texts)
         return real(self, texts)
 
-    pipe._text_cache.clear()
+    pipe.clear_text_cache()
     first = pipe(["walks forward", "turns left", "walks forward"], 1.5, seed=0)
     monkeypatch.setattr(type(encoder), "forward", counting)
     again = pipe(["turns left", "walks forward"], 1.5, seed=[0, 0])
@@ -244,3 +265,48 @@ def test_a_draft_has_its_own_default_guidance(tmp_path):
     (folder / "config.json").write_text(json.dumps(data))
     with pytest.raises(CheckpointError, match="draft.guidance_scale"):
         MLDPipeline.from_pretrained(folder)
+
+
+# -- the Draft's precision ----------------------------------------------------------------------------------------
+def test_a_bf16_draft_leaves_final_unchanged_and_keeps_its_rows_close_to_single_runs(tmp_path):
+    from mld_core.models.text_encoder import TextEmbedding
+
+    fp32 = tiny_pipeline(tmp_path / "m", draft=True, draft_precision="fp32")
+    bf16 = tiny_pipeline(tmp_path / "m", draft=True, draft_precision="bf16")
+    assert bf16.draft_precision == "bf16" and fp32.draft_precision == "fp32"
+    assert {bf16.draft_denoiser.latent_in.weight.dtype, bf16.draft_vae.head.weight.dtype,
+            bf16.draft_text_encoder.dtype} == {torch.bfloat16}
+    assert {bf16.denoiser.latent_in.weight.dtype, bf16.vae.head.weight.dtype, bf16.text_encoder.dtype} == {torch.float32}
+    draft = bf16("a person walks", 1.5, seed=3, draft=True)  # its bf16 embedding of the prompt is cached ...
+    assert isinstance(bf16._draft_text_cache["a person walks"], TextEmbedding)
+    final = bf16("a person walks", 1.5, seed=3)  # ... and never reaches Final
+    assert np.array_equal(final.joints, fp32("a person walks", 1.5, seed=3).joints)
+    reference = fp32("a person walks", 1.5, seed=3, draft=True).joints
+    assert np.isfinite(draft.joints).all() and 0 < np.abs(draft.joints - reference).max() < 0.05
+    both = bf16(["a person waves", "a person walks"], seconds=[2.0, 1.5], seed=[9, 3], draft=True)
+    assert np.abs(both.joints[1, :30] - draft.joints[0]).max() < 0.02  # bf16 rounding differs with the batch size
+    bf16.clear_text_cache()
+    assert not bf16._draft_text_cache and not bf16._text_cache
+
+
+def test_auto_draft_precision_is_bf16_only_on_cpus_that_compute_it_natively(monkeypatch):
+    import mld_core.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline, "native_bf16", lambda: True)
+    assert pipeline.draft_precision_for("auto") == "bf16" and pipeline.draft_precision_for("fp32") == "fp32"
+    monkeypatch.setattr(pipeline, "native_bf16", lambda: False)
+    assert pipeline.draft_precision_for("auto") == "fp32" and pipeline.draft_precision_for("bf16") == "bf16"
+    with pytest.raises(ValueError, match="draft_precision must be one of auto, fp32, bf16"):
+        pipeline.draft_precision_for("fp16")
+
+
+def test_an_encoder_passed_in_is_the_drafts_too(tmp_path):
+    from mld_core.models.text_encoder import MiniLMEncoder
+    from mld_core.pipeline import MLDPipeline
+    from mld_core.testing import tiny_model
+
+    folder = tiny_model(tmp_path / "m", draft=True)
+    mine = MiniLMEncoder.random(seed=0, hidden=32, layers=2, heads=2, vocab_path="builtin")
+    pipe = MLDPipeline.from_pretrained(folder, text_encoder=mine, draft_precision="bf16")
+    assert pipe.draft_text_encoder is mine and pipe.draft_vae.head.weight.dtype == torch.bfloat16
+    assert np.isfinite(pipe("a person walks", 1.5, draft=True).joints).all()

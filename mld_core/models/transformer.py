@@ -118,6 +118,16 @@ def packing_available() -> bool:
             and hasattr(torch.ops.mkldnn, "_linear_pointwise"))
 
 
+def native_bf16() -> bool:
+    """Whether this CPU computes bfloat16 natively (AVX512-BF16 or AMX-BF16); elsewhere bfloat16 is emulated and
+    slower than float32."""
+    try:
+        caps = torch.cpu.get_capabilities()
+    except (AttributeError, RuntimeError):
+        return False
+    return bool(caps.get("avx512_bf16") or caps.get("amx_bf16"))
+
+
 def _packing_available(module: nn.Module) -> bool:
     p = next(module.parameters(), None)
     return p is not None and p.device.type == "cpu" and packing_available()

@@ -13,10 +13,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 from mld_core.motion import skeleton as sk
-from mld_core.motion.features import FOOT_CONTACT, RIC, recover_root, gaussian_filter1d
+from mld_core.motion.features import FOOT_CONTACT, RIC, gaussian_filter1d
 from mld_core.motion.quaternion import qinv, qrot
 
 FOOT_JOINTS = (7, 10, 8, 11)  # the order of the contact channels: left ankle, left toe, right ankle, right toe
@@ -48,11 +47,19 @@ def repair_features(features: np.ndarray, config: RepairConfig | None = None) ->
     return out.astype(np.asarray(features).dtype)
 
 
-def _world_offsets(features: np.ndarray, root_quat: torch.Tensor) -> np.ndarray:
+def _root_quat(features: np.ndarray) -> np.ndarray:
+    """The root rotations (T, 4) of features (T, 263), as recover_root computes them, in numpy (a take's repair is
+    many small operations: numpy keeps each one cheap)."""
+    angle = np.cumsum(np.concatenate([[0.0], features[:-1, 0]]))  # (T,)
+    zero = np.zeros_like(angle)
+    return np.stack([np.cos(angle), zero, np.sin(angle), zero], axis=-1)
+
+
+def _world_offsets(features: np.ndarray, root_quat: np.ndarray) -> np.ndarray:
     """Foot joints relative to the root's ground position, in world axes: (T, 4, 3)."""
-    ric = torch.from_numpy(features[:, RIC]).reshape(len(features), 21, 3)  # (T, 21, 3)
+    ric = features[:, RIC].reshape(len(features), 21, 3)  # (T, 21, 3)
     feet = ric[:, [j - 1 for j in FOOT_JOINTS]]  # (T, 4, 3)
-    return qrot(qinv(root_quat)[:, None, :].expand(-1, 4, -1), feet).numpy()
+    return qrot(qinv(root_quat)[:, None, :], feet)
 
 
 def plant_feet(features: np.ndarray, config: RepairConfig | None = None) -> np.ndarray:
@@ -61,12 +68,11 @@ def plant_feet(features: np.ndarray, config: RepairConfig | None = None) -> np.n
     f = np.asarray(features, dtype=np.float64)
     if len(f) < 3:
         return f.copy()
-    root_quat, _ = recover_root(torch.from_numpy(f))  # (T, 4)
+    root_quat = _root_quat(f)  # (T, 4)
     offsets = _world_offsets(f, root_quat)  # (T, 4, 3)
-    inv = qinv(root_quat)
-    vel = torch.zeros(len(f) - 1, 3, dtype=torch.float64)
-    vel[:, 0], vel[:, 2] = torch.from_numpy(f[:-1, 1]), torch.from_numpy(f[:-1, 2])
-    model_step = qrot(inv[1:], vel).numpy()[:, [0, 2]]  # (T-1, 2) world displacement t -> t+1
+    vel = np.zeros((len(f) - 1, 3))
+    vel[:, 0], vel[:, 2] = f[:-1, 1], f[:-1, 2]
+    model_step = qrot(qinv(root_quat[1:]), vel)[:, [0, 2]]  # (T-1, 2) world displacement t -> t+1
 
     foot_step = -(offsets[1:, :, [0, 2]] - offsets[:-1, :, [0, 2]])  # (T-1, 4, 2) root steps that plant each joint
     height = offsets[:, :, 1] - offsets[:, :, 1].min(axis=0)  # (T, 4)
@@ -86,7 +92,7 @@ def plant_feet(features: np.ndarray, config: RepairConfig | None = None) -> np.n
 
     world = np.zeros((len(f) - 1, 3))
     world[:, 0], world[:, 2] = step[:, 0], step[:, 1]
-    local = qrot(root_quat[1:], torch.from_numpy(world)).numpy()  # back into the next frame's facing frame
+    local = qrot(root_quat[1:], world)  # back into the next frame's facing frame
     out = f.copy()
     out[:-1, 1], out[:-1, 2] = local[:, 0], local[:, 2]
     return out
