@@ -42,6 +42,8 @@ class DraftConfig:
     guidance_max: float = 5.0
     guidance_scale: float | None = None  # the Draft's default scale (None: the model's guidance_scale)
     fresh_noise: float = 1.0  # share of new noise when re-noising between steps (LCMScheduler; 1: LCM's sampler)
+    teacher_steps: int = 0  # the last steps of a Draft (all but the first at most) are guided DDIM steps of the
+    #                         model's own denoiser, which the Draft was distilled from: they finish the sample
 
     def __post_init__(self):
         if isinstance(self.denoiser, dict):
@@ -201,6 +203,9 @@ def _check_draft(draft: DraftConfig, train_timesteps: int) -> None:
                               or not draft.guidance_min <= scale <= draft.guidance_max):
         raise ValueError(f"draft.guidance_scale must be null or between draft.guidance_min and guidance_max, "
                          f"got {scale!r}")
+    teacher = draft.teacher_steps
+    if isinstance(teacher, bool) or not isinstance(teacher, int) or not 0 <= teacher < grid:
+        raise ValueError(f"draft.teacher_steps must be a whole number in 0..{grid - 1}, got {teacher!r}")
     fresh = draft.fresh_noise
     if isinstance(fresh, bool) or not isinstance(fresh, (int, float)) or not 0.0 <= fresh <= 1.0:
         raise ValueError(f"draft.fresh_noise must be a number in 0..1, got {fresh!r}")

@@ -192,8 +192,20 @@ class LCMScheduler(_Schedule):
 
     def teacher_step(self, model_output: torch.Tensor, timesteps: torch.Tensor, sample: torch.Tensor) -> torch.Tensor:
         """The distillation's ODE step: a DDIM (eta 0) step from each x_t to t - skip, timesteps (B,) >= skip."""
+        return self.ddim_step(model_output, timesteps, timesteps - self.skip, sample)
+
+    def ddim_step(self, model_output: torch.Tensor, timesteps: torch.Tensor | int, prev_timesteps: torch.Tensor | int,
+                  sample: torch.Tensor) -> torch.Tensor:
+        """A DDIM (eta 0) step from x_t to x_prev, one pair of timesteps per row or one for all; a negative
+        ``prev_timesteps`` steps to the clean sample (alpha_bar 1)."""
         shape = (-1,) + (1,) * (sample.dim() - 1)
-        a_t = self.alphas_cumprod[timesteps].reshape(shape)
-        a_prev = self.alphas_cumprod[timesteps - self.skip].reshape(shape)
+        t, prev = torch.as_tensor(timesteps).reshape(-1), torch.as_tensor(prev_timesteps).reshape(-1)
+        a_t = self.alphas_cumprod[t].reshape(shape)
+        a_prev = torch.where(prev >= 0, self.alphas_cumprod[prev.clamp(min=0)], torch.ones(())).reshape(shape)
         pred_x0 = (sample - (1 - a_t).sqrt() * model_output) / a_t.sqrt()
         return a_prev.sqrt() * pred_x0 + (1 - a_prev).sqrt() * model_output
+
+    def next_timestep(self, timestep: int) -> int:
+        """The timestep after ``timestep`` in the current schedule; -1 after the last (the clean sample)."""
+        later = self.timesteps[self.timesteps < int(timestep)]
+        return int(later[0]) if len(later) else -1

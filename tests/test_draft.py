@@ -65,6 +65,21 @@ def test_multistep_renoises_between_steps_and_returns_the_estimate_at_the_last()
         s.step(eps, 981, x)
 
 
+def test_ddim_step_between_any_two_timesteps_matches_the_ddim_scheduler():
+    lcm, ddim = LCMScheduler(), DDIMScheduler()
+    ddim.set_timesteps(50)
+    x, eps = torch.randn(2, 2, 4), torch.randn(2, 2, 4)
+    assert torch.allclose(lcm.ddim_step(eps, 481, 461, x), ddim.step(eps, 481, x)[0], atol=1e-6)
+    a = lcm.alphas_cumprod[481]
+    clean = (x - (1 - a).sqrt() * eps) / a.sqrt()  # to the clean sample
+    assert torch.allclose(lcm.ddim_step(eps, 481, -1, x), clean, atol=1e-5)
+    per_row = lcm.ddim_step(eps, torch.tensor([481, 241]), torch.tensor([-1, 1]), x)
+    assert torch.allclose(per_row[0], clean[0], atol=1e-5) and torch.allclose(per_row[1], lcm.ddim_step(
+        eps[1:], 241, 1, x[1:])[0], atol=1e-6)
+    lcm.set_timesteps(2)
+    assert [lcm.next_timestep(981), lcm.next_timestep(481)] == [481, -1]
+
+
 def test_renoising_with_the_implied_noise_continues_the_same_sample():
     x, eps, noise = torch.randn(1, 2, 4), torch.randn(1, 2, 4), torch.randn(1, 2, 4)
     steps = {}
@@ -267,6 +282,74 @@ def test_a_draft_has_its_own_default_guidance(tmp_path):
         MLDPipeline.from_pretrained(folder)
 
 
+def test_teacher_steps_finish_a_draft_with_guided_ddim_steps_of_the_model_denoiser(tmp_path):
+    import json
+
+    from mld_core.testing import tiny_model
+
+    folder = tiny_model(tmp_path / "m", draft=True)
+    data = json.loads((folder / "config.json").read_text())
+    data["draft"].update(teacher_steps=1, fresh_noise=0.0)
+    (folder / "config.json").write_text(json.dumps(data))
+    from mld_core.pipeline import MLDPipeline
+
+    pipe = MLDPipeline.from_pretrained(folder, draft_precision="fp32")
+    calls = []
+    out = pipe("a person walks", 1.5, seed=5, draft=True, repair=False, callback=lambda k, n: calls.append((k, n)))
+    assert calls == [(1, 2), (2, 2)]  # the teacher's step is one of the Draft's two
+    # the same by hand: a consistency step at 981, re-noised with its implied noise to 481, a guided DDIM step to 0
+    s, L = pipe.default_guidance(draft=True), torch.tensor([30])
+    z = torch.randn(1, 1, 32, generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        cond, _ = pipe._condition(["a person walks"], None, "text", pipe.draft_denoiser)
+        eps = pipe.draft_denoiser(z, torch.tensor([981]), cond, L, guidance=torch.tensor([s]))
+        lcm = pipe.draft_scheduler
+        est = lcm.denoised(eps, torch.tensor(981), z)
+        a981, a481 = lcm.alphas_cumprod[981], lcm.alphas_cumprod[481]
+        z = a481.sqrt() * est + (1 - a481).sqrt() * (z - a981.sqrt() * est) / (1 - a981).sqrt()
+        t_cond, t_null = pipe._condition(["a person walks"], None, "text", pipe.denoiser)
+        e_null, e_cond = pipe.denoiser(torch.cat([z, z]), torch.tensor([481, 481]), torch.cat([t_null, t_cond]),
+                                       torch.cat([L, L])).chunk(2)
+        z0 = lcm.ddim_step(e_null + s * (e_cond - e_null), 481, -1, z)
+        by_hand = pipe.latents_to_features(z0, L)
+    assert np.allclose(out.features, by_hand, atol=1e-5)
+    one = pipe("a person walks", 1.5, seed=5, draft=True, num_inference_steps=1, repair=False)  # no room: none
+    assert not np.allclose(one.features, out.features, atol=1e-3)
+    bad = {**data, "draft": {**data["draft"], "teacher_steps": 50}}
+    (folder / "config.json").write_text(json.dumps(bad))
+    with pytest.raises(CheckpointError, match="draft.teacher_steps"):
+        MLDPipeline.from_pretrained(folder)
+
+
+def test_the_pooled_text_tokens_are_the_same_with_and_without_gradients():
+    from mld_core.models.denoiser import AttentionPool
+
+    torch.manual_seed(0)
+    pool = AttentionPool(32, 2, 4).eval()
+    tokens, valid = torch.randn(3, 7, 32), torch.ones(3, 7, dtype=torch.bool)
+    valid[1, 4:], valid[2, 1:] = False, False  # padded rows
+    with torch.enable_grad():
+        module_path = pool(tokens, valid)  # nn.MultiheadAttention
+    with torch.no_grad():
+        functional = pool(tokens, valid)
+    assert torch.allclose(module_path, functional, atol=1e-6)
+
+
+def test_bf16_products_in_a_float32_stack_stay_close_to_float32():
+    from mld_core.models.transformer import SkipTransformer, TransformerConfig
+
+    torch.manual_seed(0)
+    stack = SkipTransformer(TransformerConfig(dim=32, heads=2, ff_dim=64, layers=3, cross_attention=True)).eval()
+    x, memory = torch.randn(1, 20, 32), torch.randn(1, 2, 32)
+    with torch.no_grad():
+        reference = stack(x, memory=memory)
+        if not stack.pack_for_cpu_inference(torch.bfloat16):
+            pytest.skip("this torch build has no oneDNN prepacked linear ops")
+        mixed = stack(x, memory=memory)
+    assert mixed.dtype == torch.float32
+    assert 0 < (mixed - reference).abs().max() < 0.05
+
+
 # -- the Draft's precision ----------------------------------------------------------------------------------------
 def test_a_bf16_draft_leaves_final_unchanged_and_keeps_its_rows_close_to_single_runs(tmp_path):
     from mld_core.models.text_encoder import TextEmbedding
@@ -274,8 +357,8 @@ def test_a_bf16_draft_leaves_final_unchanged_and_keeps_its_rows_close_to_single_
     fp32 = tiny_pipeline(tmp_path / "m", draft=True, draft_precision="fp32")
     bf16 = tiny_pipeline(tmp_path / "m", draft=True, draft_precision="bf16")
     assert bf16.draft_precision == "bf16" and fp32.draft_precision == "fp32"
-    assert {bf16.draft_denoiser.latent_in.weight.dtype, bf16.draft_vae.head.weight.dtype,
-            bf16.draft_text_encoder.dtype} == {torch.bfloat16}
+    assert {bf16.draft_denoiser.latent_in.weight.dtype, bf16.draft_text_encoder.dtype} == {torch.bfloat16}
+    assert bf16.draft_vae is not bf16.vae and bf16.draft_vae.head.weight.dtype == torch.float32  # bf16 products
     assert {bf16.denoiser.latent_in.weight.dtype, bf16.vae.head.weight.dtype, bf16.text_encoder.dtype} == {torch.float32}
     draft = bf16("a person walks", 1.5, seed=3, draft=True)  # its bf16 embedding of the prompt is cached ...
     assert isinstance(bf16._draft_text_cache["a person walks"], TextEmbedding)
@@ -308,5 +391,5 @@ def test_an_encoder_passed_in_is_the_drafts_too(tmp_path):
     folder = tiny_model(tmp_path / "m", draft=True)
     mine = MiniLMEncoder.random(seed=0, hidden=32, layers=2, heads=2, vocab_path="builtin")
     pipe = MLDPipeline.from_pretrained(folder, text_encoder=mine, draft_precision="bf16")
-    assert pipe.draft_text_encoder is mine and pipe.draft_vae.head.weight.dtype == torch.bfloat16
+    assert pipe.draft_text_encoder is mine and pipe.draft_vae is not pipe.vae
     assert np.isfinite(pipe("a person walks", 1.5, draft=True).joints).all()

@@ -65,11 +65,12 @@ class SkipTransformer(nn.Module):
         return layer(x, src_key_padding_mask=padding_mask)
 
     # -- CPU inference ------------------------------------------------------------------------------------------
-    def pack_for_cpu_inference(self) -> bool:
+    def pack_for_cpu_inference(self, dtype: torch.dtype | None = None) -> bool:
         """Keep oneDNN-prepacked copies of the layers' weights for inference without padding masks (the denoiser's
         steps, the decoding of rows of one length): each matrix is reordered once instead of on every call, which
-        halves a step's time on a CPU at the few tokens a step runs. A snapshot: ``train()`` drops it. False where
-        oneDNN is unavailable."""
+        halves a step's time on a CPU at the few tokens a step runs. ``dtype`` (e.g. bfloat16) runs the matrix
+        products in that precision while layer norms, attention and the residual stream keep the module's, as
+        autocast does. A snapshot: ``train()`` drops it. False where oneDNN is unavailable."""
         self._packed = {}
         if not _packing_available(self):
             return False
@@ -77,16 +78,16 @@ class SkipTransformer(nn.Module):
         for layer in [*self.input_blocks, *self.middle_blocks, *self.output_blocks]:
             attn = layer.self_attn
             packed = {
-                "in": _pack(attn.in_proj_weight, attn.in_proj_bias),
-                "out": _pack(attn.out_proj.weight, attn.out_proj.bias),
-                "ff1": _pack(layer.linear1.weight, layer.linear1.bias),
-                "ff2": _pack(layer.linear2.weight, layer.linear2.bias),
+                "in": _pack(attn.in_proj_weight, attn.in_proj_bias, dtype),
+                "out": _pack(attn.out_proj.weight, attn.out_proj.bias, dtype),
+                "ff1": _pack(layer.linear1.weight, layer.linear1.bias, dtype),
+                "ff2": _pack(layer.linear2.weight, layer.linear2.bias, dtype),
             }
             if self.config.cross_attention:
                 cross = layer.multihead_attn
-                packed["cross_q"] = _pack(cross.in_proj_weight[:d], cross.in_proj_bias[:d])
-                packed["cross_kv"] = _pack(cross.in_proj_weight[d:], cross.in_proj_bias[d:])
-                packed["cross_out"] = _pack(cross.out_proj.weight, cross.out_proj.bias)
+                packed["cross_q"] = _pack(cross.in_proj_weight[:d], cross.in_proj_bias[:d], dtype)
+                packed["cross_kv"] = _pack(cross.in_proj_weight[d:], cross.in_proj_bias[d:], dtype)
+                packed["cross_out"] = _pack(cross.out_proj.weight, cross.out_proj.bias, dtype)
             self._packed[id(layer)] = packed
         return True
 
@@ -133,16 +134,24 @@ def _packing_available(module: nn.Module) -> bool:
     return p is not None and p.device.type == "cpu" and packing_available()
 
 
-def _pack(weight: torch.Tensor, bias: torch.Tensor | None) -> tuple:
+def _pack(weight: torch.Tensor, bias: torch.Tensor | None, dtype: torch.dtype | None = None) -> tuple:
+    """oneDNN-prepacked (weight, bias), cast to ``dtype`` first when given (the matrix products' precision)."""
     with torch.no_grad():
-        return torch.ops.mkldnn._reorder_linear_weight(weight.detach(), 16), bias.detach() if bias is not None else None
+        weight, bias = weight.detach(), bias.detach() if bias is not None else None
+        if dtype is not None:
+            weight, bias = weight.to(dtype), bias.to(dtype) if bias is not None else None
+        return torch.ops.mkldnn._reorder_linear_weight(weight, 16), bias
 
 
 def _linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, packed: tuple | None,
             gelu: bool = False) -> torch.Tensor:
+    """x @ weight.T + bias (then GELU), on the prepacked weights when given; packed weights of another precision
+    than x (a float32 module with bfloat16 products) take x in theirs and return the result in x's."""
     if packed is not None:
-        return torch.ops.mkldnn._linear_pointwise(x, packed[0], packed[1], "gelu" if gelu else "none", [],
-                                                  "none" if gelu else "")
+        compute = packed[0].dtype
+        y = torch.ops.mkldnn._linear_pointwise(x.to(compute), packed[0], packed[1], "gelu" if gelu else "none", [],
+                                               "none" if gelu else "")
+        return y.to(x.dtype)
     y = F.linear(x, weight, bias)
     return F.gelu(y) if gelu else y
 
@@ -174,13 +183,14 @@ def sinusoidal_embedding(positions: torch.Tensor, dim: int, max_period: float = 
     return torch.cat([torch.sin(angles), torch.cos(angles)], dim=-1)
 
 
-def _attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, heads: int) -> torch.Tensor:
-    """Multi-head attention of q (B, S, d) over k, v (B, M, d) -> (B, S, d)."""
+def _attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, heads: int,
+               mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Multi-head attention of q (B, S, d) over k, v (B, M, d) -> (B, S, d); ``mask`` (B, 1, 1, M) True = attend."""
     B, S, d = q.shape
     M = k.shape[1]
-    q = q.view(B, S, heads, d // heads).transpose(1, 2)  # (B, H, S, d/H)
-    k, v = (t.view(B, M, heads, d // heads).transpose(1, 2) for t in (k, v))  # (B, H, M, d/H)
-    return F.scaled_dot_product_attention(q, k, v).transpose(1, 2).reshape(B, S, d)
+    q = q.reshape(B, S, heads, d // heads).transpose(1, 2)  # (B, H, S, d/H)
+    k, v = (t.reshape(B, M, heads, d // heads).transpose(1, 2) for t in (k, v))  # (B, H, M, d/H)
+    return F.scaled_dot_product_attention(q, k, v, attn_mask=mask).transpose(1, 2).reshape(B, S, d)
 
 
 def decoder_layer_inference(layer: nn.TransformerDecoderLayer, x: torch.Tensor, memory: torch.Tensor,
