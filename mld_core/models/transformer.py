@@ -165,14 +165,15 @@ def encoder_layer_inference(layer: nn.TransformerEncoderLayer, x: torch.Tensor, 
     B, S, d = x.shape
     attn = layer.self_attn
     pk = packed or {}
-    h = F.layer_norm(x, (d,), layer.norm1.weight, layer.norm1.bias, layer.norm1.eps)
+    c = _compute_dtype(pk, x)  # each sub-block in c; the residual stream stays in x's dtype
+    h = F.layer_norm(x, (d,), layer.norm1.weight, layer.norm1.bias, layer.norm1.eps).to(c)
     qkv = _linear(h, attn.in_proj_weight, attn.in_proj_bias, pk.get("in"))  # (B, S, 3d)
     q, k, v = qkv.view(B, S, 3, attn.num_heads, d // attn.num_heads).permute(2, 0, 3, 1, 4)  # each (B, H, S, d/H)
     a = F.scaled_dot_product_attention(q, k, v).transpose(1, 2).reshape(B, S, d)  # (B, S, d)
-    x = x + _linear(a, attn.out_proj.weight, attn.out_proj.bias, pk.get("out"))
-    h = F.layer_norm(x, (d,), layer.norm2.weight, layer.norm2.bias, layer.norm2.eps)
+    x = x + _linear(a, attn.out_proj.weight, attn.out_proj.bias, pk.get("out")).to(x.dtype)
+    h = F.layer_norm(x, (d,), layer.norm2.weight, layer.norm2.bias, layer.norm2.eps).to(c)
     h = _linear(h, layer.linear1.weight, layer.linear1.bias, pk.get("ff1"), gelu=True)  # (B, S, ff)
-    return x + _linear(h, layer.linear2.weight, layer.linear2.bias, pk.get("ff2"))
+    return x + _linear(h, layer.linear2.weight, layer.linear2.bias, pk.get("ff2")).to(x.dtype)
 
 
 def sinusoidal_embedding(positions: torch.Tensor, dim: int, max_period: float = 10000.0) -> torch.Tensor:
@@ -200,14 +201,22 @@ def decoder_layer_inference(layer: nn.TransformerDecoderLayer, x: torch.Tensor, 
     d = x.shape[-1]
     pk = packed or {}
     attn, cross = layer.self_attn, layer.multihead_attn
-    h = F.layer_norm(x, (d,), layer.norm1.weight, layer.norm1.bias, layer.norm1.eps)
+    c = _compute_dtype(pk, x)  # each sub-block in c; the residual stream stays in x's dtype
+    h = F.layer_norm(x, (d,), layer.norm1.weight, layer.norm1.bias, layer.norm1.eps).to(c)
     q, k, v = _linear(h, attn.in_proj_weight, attn.in_proj_bias, pk.get("in")).chunk(3, dim=-1)  # each (B, S, d)
-    x = x + _linear(_attention(q, k, v, attn.num_heads), attn.out_proj.weight, attn.out_proj.bias, pk.get("out"))
-    h = F.layer_norm(x, (d,), layer.norm2.weight, layer.norm2.bias, layer.norm2.eps)
+    a = _attention(q, k, v, attn.num_heads)
+    x = x + _linear(a, attn.out_proj.weight, attn.out_proj.bias, pk.get("out")).to(x.dtype)
+    h = F.layer_norm(x, (d,), layer.norm2.weight, layer.norm2.bias, layer.norm2.eps).to(c)
     q = _linear(h, cross.in_proj_weight[:d], cross.in_proj_bias[:d], pk.get("cross_q"))  # (B, S, d)
-    k, v = _linear(memory, cross.in_proj_weight[d:], cross.in_proj_bias[d:], pk.get("cross_kv")).chunk(2, dim=-1)
-    x = x + _linear(_attention(q, k, v, cross.num_heads), cross.out_proj.weight, cross.out_proj.bias,
-                    pk.get("cross_out"))
-    h = F.layer_norm(x, (d,), layer.norm3.weight, layer.norm3.bias, layer.norm3.eps)
+    k, v = _linear(memory.to(c), cross.in_proj_weight[d:], cross.in_proj_bias[d:], pk.get("cross_kv")).chunk(2, -1)
+    a = _attention(q, k, v, cross.num_heads)
+    x = x + _linear(a, cross.out_proj.weight, cross.out_proj.bias, pk.get("cross_out")).to(x.dtype)
+    h = F.layer_norm(x, (d,), layer.norm3.weight, layer.norm3.bias, layer.norm3.eps).to(c)
     h = _linear(h, layer.linear1.weight, layer.linear1.bias, pk.get("ff1"), gelu=True)  # (B, S, ff)
-    return x + _linear(h, layer.linear2.weight, layer.linear2.bias, pk.get("ff2"))
+    return x + _linear(h, layer.linear2.weight, layer.linear2.bias, pk.get("ff2")).to(x.dtype)
+
+
+def _compute_dtype(packed: dict, x: torch.Tensor) -> torch.dtype:
+    """The precision of a layer's matrix products: its prepacked weights' (pack_for_cpu_inference), else x's."""
+    first = next(iter(packed.values()), None)
+    return first[0].dtype if first is not None else x.dtype
