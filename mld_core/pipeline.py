@@ -103,11 +103,13 @@ class MLDPipeline:
         self.draft_precision = draft_precision_for(draft_precision, self.device)
         self.draft_vae, self.draft_text_encoder, self.draft_teacher = self.vae, text_encoder, None
         if config.draft is not None and draft_denoiser is not None:
+            # Its denoisers keep float32 weights; their transformer layers' products run in the Draft's precision
+            # (the small projections and MLPs run faster unpacked in float32 than in bfloat16).
             draft_dtype = PRECISIONS[self.draft_precision]
-            self.draft_denoiser = draft_denoiser.eval().to(self.device, draft_dtype)
-            self.draft_denoiser.transformer.pack_for_cpu_inference()
+            self.draft_denoiser = draft_denoiser.eval().to(self.device)
+            self.draft_denoiser.transformer.pack_for_cpu_inference(draft_dtype)
             self.draft_teacher = self.denoiser  # runs a Draft's teacher steps (config draft.teacher_steps)
-            if config.draft.teacher_steps and self.denoiser.latent_in.weight.dtype != draft_dtype:
+            if config.draft.teacher_steps and (draft_dtype != torch.float32 or precision != "fp32"):
                 self.draft_teacher = _denoiser_copy(self.denoiser, config.denoiser, self.device, draft_dtype)
             if draft_dtype != torch.float32:
                 self.draft_vae = _vae_copy(vae, config.vae, self.device, draft_dtype)
@@ -574,9 +576,9 @@ def _guided_eps(denoiser: LatentDenoiser, z: torch.Tensor, t, cond: torch.Tensor
 
 
 def _denoiser_copy(denoiser: LatentDenoiser, config, device: torch.device, dtype: torch.dtype) -> LatentDenoiser:
-    """A copy of ``denoiser`` in ``dtype`` (prepacked for the CPU): a bf16 Draft's teacher steps."""
+    """A float32 copy of ``denoiser`` whose transformer layers' products run in ``dtype``: a Draft's teacher."""
     copy = LatentDenoiser(config)
-    copy.load_state_dict(denoiser.state_dict())
-    copy = copy.eval().to(device, dtype)
-    copy.transformer.pack_for_cpu_inference()
+    copy.load_state_dict({k: v.float() for k, v in denoiser.state_dict().items()})
+    copy = copy.eval().to(device)
+    copy.transformer.pack_for_cpu_inference(dtype)
     return copy

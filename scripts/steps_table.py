@@ -105,7 +105,7 @@ def main(argv=None) -> int:
           "repair ms | joints ms | total cold ms | total warm ms | cold x first row |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, q, t, w in results:
-        qual = (f"{q['pass']:.2f} | {q['skating']:.2f} | {q['jerk']:.1f}" if q else "- | - | -")
+        qual = (f"{q['pass']:.3f} | {q['skating']:.3f} | {q['jerk']:.1f}" if q else "- | - | -")
         print(f"| {name} | {qual} | {1e3 * t['condition_s']:.1f} | {1e3 * t['diffusion_s']:.1f} | "
               f"{1e3 * t['decode_s']:.1f} | {1e3 * t['repair_s']:.1f} | {1e3 * t['joints_s']:.1f} | "
               f"{1e3 * t['total']:.1f} | {1e3 * w['total']:.1f} | {t['total'] / base:.3f} |")

@@ -357,8 +357,11 @@ def test_a_bf16_draft_leaves_final_unchanged_and_keeps_its_rows_close_to_single_
     fp32 = tiny_pipeline(tmp_path / "m", draft=True, draft_precision="fp32")
     bf16 = tiny_pipeline(tmp_path / "m", draft=True, draft_precision="bf16")
     assert bf16.draft_precision == "bf16" and fp32.draft_precision == "fp32"
-    assert {bf16.draft_denoiser.latent_in.weight.dtype, bf16.draft_text_encoder.dtype} == {torch.bfloat16}
-    assert bf16.draft_vae is not bf16.vae and bf16.draft_vae.head.weight.dtype == torch.float32  # bf16 products
+    assert bf16.draft_text_encoder.dtype == torch.bfloat16 and bf16.draft_text_encoder is not bf16.text_encoder
+    for stack in (bf16.draft_denoiser.transformer, bf16.draft_vae.decoder):  # float32 modules, bf16 products
+        assert next(stack.parameters()).dtype == torch.float32
+        assert {p[0].dtype for layer in stack._packed.values() for p in layer.values()} == {torch.bfloat16}
+    assert bf16.draft_vae is not bf16.vae
     assert {bf16.denoiser.latent_in.weight.dtype, bf16.vae.head.weight.dtype, bf16.text_encoder.dtype} == {torch.float32}
     draft = bf16("a person walks", 1.5, seed=3, draft=True)  # its bf16 embedding of the prompt is cached ...
     assert isinstance(bf16._draft_text_cache["a person walks"], TextEmbedding)
