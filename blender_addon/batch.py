@@ -520,6 +520,8 @@ def _manifest(args, paths, obj, map_source, pipe, model_dir, retarget, scene, re
             "seed": args.seed,
             "steps": pipe.config.draft.num_inference_steps if args.draft else args.steps,  # the steps it ran
             "draft": args.draft,
+            "draft_teacher_steps": min(pipe.config.draft.teacher_steps, pipe.config.draft.num_inference_steps - 1)
+            if args.draft else 0,  # how many of those were the model's own guided DDIM steps
             "guidance": args.guidance,
             "device": args.device,
             "exact": not args.no_exact,

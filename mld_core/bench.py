@@ -293,8 +293,17 @@ def mld_flops(pipe, prompt: str, frames: int, steps: int, guidance_scale: float 
         z = torch.randn(rows, n, d, dtype=dtype)
         f_step = _count_flops(lambda: den(z, torch.full((rows,), 500), cond.to(dtype), lengths.repeat(rows), **scale))
         f_dec = _count_flops(lambda: pipe.vae.decode(torch.randn(1, n, d), lengths))
-    return {"condition": f_cond, "per_step": f_step, "steps": steps, "decode": f_dec,
-            "total": f_cond + steps * f_step + f_dec}
+    out = {"condition": f_cond, "per_step": f_step, "steps": steps, "decode": f_dec,
+           "total": f_cond + steps * f_step + f_dec}
+    teacher_steps = min(pipe.config.draft.teacher_steps, steps - 1) if draft else 0
+    if teacher_steps:  # the Draft's last steps are guided steps of the model's own denoiser
+        teacher = mld_flops(pipe, prompt, frames, teacher_steps, s)
+        with _TrainMode(pipe.text_encoder):
+            f_text = _count_flops(lambda: pipe.text_encoder([prompt])) if den.config.cond == "text" else 0
+        out["condition"] += teacher["condition"] - f_text  # its condition tokens; the text is encoded once
+        out.update(teacher_steps=teacher_steps, teacher_per_step=teacher["per_step"])
+        out["total"] = out["condition"] + (steps - teacher_steps) * f_step + teacher_steps * teacher["per_step"] + f_dec
+    return out
 
 
 def raw_flops(baseline: RawMotionBaseline, prompt: str, steps: int, guidance_scale: float | None = None) -> dict:
@@ -363,7 +372,9 @@ def run_bench(model=None, *, baseline: str | None = None, prompts: int = 32, sec
     result["methods"].append(mld)
     if getattr(pipe, "draft_denoiser", None) is not None and cond == "text":
         d_steps = pipe.config.draft.num_inference_steps
-        draft = {"name": "MLD Draft", "scheduler": f"LCM-{d_steps}", "steps": d_steps, "trained": True}
+        t_steps = min(pipe.config.draft.teacher_steps, d_steps - 1)
+        sampler = f"LCM-{d_steps - t_steps}" + (f" + DDIM-{t_steps}" if t_steps else "")
+        draft = {"name": "MLD Draft", "scheduler": sampler, "steps": d_steps, "trained": True}
         kw = {"guidance_scale": guidance_scale, "draft": True}
         draft["batch1"] = time_pipeline(pipe, texts, seconds=seconds, batch_size=1, progress=progress, **kw)
         draft["batch32"] = time_pipeline(pipe, texts, seconds=seconds, batch_size=32, progress=progress, **kw)

@@ -254,10 +254,11 @@ def register(groups) -> None:
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the first take: line i, variant v of a prompt file uses seed + i * variants + v")
     p.add_argument("--steps", type=int, default=None,
-                   help="DDIM steps (default: the model's, 50); with --draft, consistency steps (default: the Draft's)")
+                   help="DDIM steps (default: the model's, 50); with --draft, the Draft's steps (default: its config's; the "
+                        "last of them may be guided DDIM steps of the model's own denoiser, config draft.teacher_steps)")
     p.add_argument("--guidance", type=float, default=None, help="classifier-free guidance scale (default: the model's)")
     p.add_argument("--draft", action="store_true",
-                   help="Draft mode: the model's distilled denoiser, about 8x faster (docs/draft.md)")
+                   help="Draft mode: the model's distilled denoiser, about 9x faster (docs/draft.md)")
     p.add_argument("--variants", type=int, default=1, help="motions per prompt (seeds seed, seed+1, ...)")
     p.add_argument("--best", type=int, default=None, metavar="K",
                    help="score every variant (adherence, skating, float, penetration, jitter: docs/quality.md), "

@@ -110,4 +110,5 @@ def test_batch_draft_records_the_steps_it_ran(tmp_path):
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     manifest = json.loads(out.with_suffix(".json").read_text())
     assert manifest["settings"]["draft"] is True and manifest["settings"]["steps"] == 2  # not --steps' 50
+    assert manifest["settings"]["draft_teacher_steps"] == 0  # the tiny model's Draft has no teacher steps
     assert manifest["takes"][0]["steps"] == 2
