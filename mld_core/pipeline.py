@@ -98,8 +98,8 @@ class MLDPipeline:
         self.draft_denoiser = None  # the Draft (consistency-distilled) denoiser, from draft.safetensors
         self.draft_problem = ""  # why a model folder's Draft could not be loaded (from_pretrained)
         self.draft_scheduler = None
-        # The Draft runs text encoder, denoiser and decoder in its own precision (draft_precision_for); in bf16 it
-        # keeps bf16 copies of the decoder and (when given) the text encoder, so Final's takes never change.
+        # The Draft runs in its own precision (draft_precision_for); in bf16 it keeps its own copies of the decoder
+        # and the teacher (bf16 products) and of the text encoder (when given), so Final's takes never change.
         self.draft_precision = draft_precision_for(draft_precision, self.device)
         self.draft_vae, self.draft_text_encoder, self.draft_teacher = self.vae, text_encoder, None
         if config.draft is not None and draft_denoiser is not None:
