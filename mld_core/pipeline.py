@@ -346,7 +346,8 @@ class MLDPipeline:
         ``constraints`` (a ``mld_core.constraints.Constraints``: poses to hit, a root path, a loop) refines each
         sampled latent to meet them; ``out.residuals`` says how well each row did. ``repair`` applies the model's
         repairs (config ``repair``: one skeleton, planted feet; mld_core.motion.repair) to free takes. ``draft``
-        samples with the model's Draft denoiser (config ``draft``: a few consistency steps, about 8x faster)."""
+        samples with the model's Draft denoiser (config ``draft``: a few consistency steps, the last of them
+        guided steps of the model's own denoiser; about 9x faster)."""
         if self.denoiser is None:
             raise CheckpointError("this model folder has only a VAE; sample with sample_prior() or train a denoiser")
         if draft and self.draft_denoiser is None:
