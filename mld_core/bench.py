@@ -346,7 +346,8 @@ def run_bench(model=None, *, baseline: str | None = None, prompts: int = 32, sec
               "cpus": os.cpu_count(),
               "threads": torch.get_num_threads(), "torch": torch.__version__, "machine": platform.machine(),
               "processor": platform.processor() or platform.machine(), "guidance_scale": guidance,
-              "precision": getattr(pipe, "precision", "fp32"), "methods": []}
+              "precision": getattr(pipe, "precision", "fp32"), "draft_precision": getattr(pipe, "draft_precision", ""),
+              "methods": []}
 
     mld_kw = {"num_inference_steps": steps, "guidance_scale": guidance_scale}
     log(f"timing MLD ({pipe.model_id}) on {prompts} prompts, {seconds:g} s ({frames} frames), "

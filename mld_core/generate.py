@@ -150,7 +150,7 @@ def _load(args):
     from mld_core.pipeline import MLDPipeline
 
     try:
-        return MLDPipeline.from_pretrained(args.model, precision=args.precision)
+        return MLDPipeline.from_pretrained(args.model, precision=args.precision, draft_precision=args.draft_precision)
     except CheckpointError as exc:
         raise InputError(str(exc)) from None
     except ImportError as exc:
@@ -282,4 +282,7 @@ def register(groups) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     p.add_argument("--precision", choices=PRECISION_CHOICES, default="fp32", help=PRECISION_HELP)
+    p.add_argument("--draft-precision", choices=("auto", "fp32", "bf16"), default="auto",
+                   help="the Draft's precision: auto (default) is bf16 on CPUs with native bfloat16 (AVX512-BF16, AMX), "
+                        "fp32 elsewhere; fp32 gives the same Draft take on every CPU (docs/draft.md)")
     p.set_defaults(func=run)

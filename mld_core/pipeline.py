@@ -28,7 +28,7 @@ from mld_core.models.denoiser import LatentDenoiser
 from mld_core.constraints import bone_stretch, planted_foot_speed
 from mld_core.motion.features import FOOT_CONTACT, features_to_joints
 from mld_core.motion.repair import repair_features
-from mld_core.models.transformer import native_bf16
+from mld_core.models.transformer import native_bf16, packing_available
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import DDIMScheduler, LCMScheduler
 
@@ -42,9 +42,12 @@ def draft_precision_for(choice: str, device: str | torch.device = "cpu") -> str:
     AMX: text encoder, denoiser and decoder each about 1.3-1.5x faster) and fp32 elsewhere."""
     if choice not in DRAFT_PRECISIONS:
         raise ValueError(f"draft_precision must be one of {', '.join(DRAFT_PRECISIONS)}, got {choice!r}")
+    packs = torch.device(device).type == "cpu" and packing_available()  # bf16 products need oneDNN's packed ops
+    if choice == "bf16" and not packs:
+        warnings.warn("draft_precision bf16 needs a CPU with oneDNN: the Draft runs in fp32", stacklevel=3)
     if choice != "auto":
-        return choice
-    return "bf16" if torch.device(device).type == "cpu" and native_bf16() else "fp32"
+        return choice if packs else "fp32"
+    return "bf16" if packs and native_bf16() else "fp32"
 
 
 class Cancelled(Exception):
@@ -86,6 +89,14 @@ class MLDPipeline:
         self.precision = precision
         self.vae = vae.eval().to(self.device)
         self.vae.decoder.pack_for_cpu_inference()  # no-op off CPU
+        # The Draft runs in its own precision (draft_precision_for); in bf16 it keeps its own copies of the decoder
+        # and the teacher (bf16 products) and of the text encoder (when given), so Final's takes never change.
+        self.draft_precision = draft_precision_for(draft_precision, self.device)
+        self.draft_vae, self.draft_text_encoder, self.draft_teacher = self.vae, text_encoder, None
+        if config.draft is not None and draft_denoiser is not None and denoiser is not None \
+                and config.draft.teacher_steps and (self.draft_precision != "fp32" or precision != "fp32"):
+            self.draft_teacher = _denoiser_copy(denoiser, config.denoiser, self.device,
+                                                PRECISIONS[self.draft_precision])  # from the float32 weights
         # The denoiser runs 2 x 50 times per prompt: in bf16 its weights are cast once (text encoder, VAE and the
         # DDIM update stay in float32).
         self.denoiser = denoiser.eval().to(self.device, PRECISIONS[precision]) if denoiser is not None else None
@@ -98,19 +109,14 @@ class MLDPipeline:
         self.draft_denoiser = None  # the Draft (consistency-distilled) denoiser, from draft.safetensors
         self.draft_problem = ""  # why a model folder's Draft could not be loaded (from_pretrained)
         self.draft_scheduler = None
-        # The Draft runs in its own precision (draft_precision_for); in bf16 it keeps its own copies of the decoder
-        # and the teacher (bf16 products) and of the text encoder (when given), so Final's takes never change.
-        self.draft_precision = draft_precision_for(draft_precision, self.device)
-        self.draft_vae, self.draft_text_encoder, self.draft_teacher = self.vae, text_encoder, None
         if config.draft is not None and draft_denoiser is not None:
             # Its denoisers keep float32 weights; their transformer layers' products run in the Draft's precision
             # (the small projections and MLPs run faster unpacked in float32 than in bfloat16).
             draft_dtype = PRECISIONS[self.draft_precision]
             self.draft_denoiser = draft_denoiser.eval().to(self.device)
             self.draft_denoiser.transformer.pack_for_cpu_inference(draft_dtype)
-            self.draft_teacher = self.denoiser  # runs a Draft's teacher steps (config draft.teacher_steps)
-            if config.draft.teacher_steps and (draft_dtype != torch.float32 or precision != "fp32"):
-                self.draft_teacher = _denoiser_copy(self.denoiser, config.denoiser, self.device, draft_dtype)
+            if self.draft_teacher is None:  # runs a Draft's teacher steps (config draft.teacher_steps)
+                self.draft_teacher = self.denoiser
             if draft_dtype != torch.float32:
                 self.draft_vae = _vae_copy(vae, config.vae, self.device, draft_dtype)
                 self.draft_text_encoder = draft_text_encoder if draft_text_encoder is not None else text_encoder
@@ -340,14 +346,15 @@ class MLDPipeline:
                  callback: Callable[[int, int], bool | None] | None = None, unconditional: bool = False,
                  rank: bool = False, constraints=None, repair: bool = True, draft: bool = False) -> MLDOutput:
         """Generate ``num_variants`` motions per prompt; row i*num_variants + v uses seed ``seed + v``, or
-        ``seed[i] + v`` when ``seed`` is a sequence (one per prompt). Any row equals the single run with its seed.
-        ``unconditional`` samples with the null condition (the prompts then only label the rows). ``rank`` scores
-        every row (``out.badges``) and orders each prompt's variants best first (mld_core.eval.quality.best_first).
-        ``constraints`` (a ``mld_core.constraints.Constraints``: poses to hit, a root path, a loop) refines each
-        sampled latent to meet them; ``out.residuals`` says how well each row did. ``repair`` applies the model's
-        repairs (config ``repair``: one skeleton, planted feet; mld_core.motion.repair) to free takes. ``draft``
-        samples with the model's Draft denoiser (config ``draft``: a few consistency steps, the last of them
-        guided steps of the model's own denoiser; about 9x faster)."""
+        ``seed[i] + v`` when ``seed`` is a sequence (one per prompt). Any row equals the single run with its seed. (A
+        Draft in bf16: to within bf16 rounding, up to about 2 cm.) ``unconditional`` samples with the null
+        condition (the prompts then only label the rows). ``rank`` scores every row (``out.badges``) and orders
+        each prompt's variants best first (mld_core.eval.quality.best_first). ``constraints`` (a
+        ``mld_core.constraints.Constraints``: poses to hit, a root path, a loop) refines each sampled latent to
+        meet them; ``out.residuals`` says how well each row did. ``repair`` applies the model's repairs (config
+        ``repair``: one skeleton, planted feet; mld_core.motion.repair) to free takes. ``draft`` samples with
+        the model's Draft denoiser (config ``draft``: a few consistency steps, the last of them guided steps of
+        the model's own denoiser; about 9x faster)."""
         if self.denoiser is None:
             raise CheckpointError("this model folder has only a VAE; sample with sample_prior() or train a denoiser")
         if draft and self.draft_denoiser is None:
@@ -540,9 +547,9 @@ class MLDPipeline:
 
 
 def _vae_copy(vae: MotionVAE, config, device: torch.device, dtype: torch.dtype) -> MotionVAE:
-    """A copy of ``vae`` for decoding whose decoder's matrix products run in ``dtype``; layer norms, attention, the
-    residual stream and the output stay float32 (a decoder wholly in bfloat16 rounds the features it outputs, and
-    its takes measured 11% more jerk)."""
+    """A copy of ``vae`` for decoding whose decoder's matrix products (and so its attention) run in ``dtype``; layer
+    norms, the residual stream and the output stay float32 (a decoder wholly in bfloat16 rounds the features it
+    outputs, and its takes measured 11% more jerk)."""
     copy = MotionVAE(config)
     copy.load_state_dict(vae.state_dict())
     copy = copy.eval().to(device)

@@ -5,7 +5,8 @@ whether the second is at least as good on each (prints a table).
 
 Both files come from ``side_accuracy.py --json`` with the same prompts (e.g. ``--prompts paraphrase --seeds 8``).
 A content is "worse" when NEW's pass rate is lower, or (locomotion contents) its skating higher, by more than
-``--tolerance``; the last line counts them: the gate of a new default model (issue 15) is none worse.
+``--tolerance``, or when NEW did not score it; the last line counts them: the gate of a new default model (issue 15)
+is none worse.
 """
 
 from __future__ import annotations
@@ -18,10 +19,9 @@ from pathlib import Path
 LOCOMOTION = ("walk", "run", "dash", "walk-back", "walk-left", "walk-right", "walk-turn-left", "walk-turn-right")
 
 
-def contents_of(path: Path) -> dict:
-    """content -> {"pass_rate", "skating", ...} of the run's first prompt set."""
-    generated = json.loads(Path(path).read_text())["generated"]
-    return next(iter(generated.values()))["contents"]
+def prompt_sets(path: Path) -> dict:
+    """prompt set (e.g. "paraphrase@4s") -> content -> {"pass_rate", "skating", ...} of one side_accuracy run."""
+    return {name: run["contents"] for name, run in json.loads(Path(path).read_text())["generated"].items()}
 
 
 def compare(base: dict, new: dict, tolerance: float = 0.0) -> list[dict]:
@@ -29,6 +29,8 @@ def compare(base: dict, new: dict, tolerance: float = 0.0) -> list[dict]:
     rows = []
     for content in base:
         if content not in new:
+            rows.append({"content": content, "pass": (base[content]["pass_rate"], float("nan")),
+                         "skating": (base[content]["skating"], float("nan")), "worse": True})
             continue
         b, n = base[content], new[content]
         worse_pass = n["pass_rate"] < b["pass_rate"] - tolerance
@@ -45,10 +47,16 @@ def main(argv=None) -> int:
     parser.add_argument("--tolerance", type=float, default=0.0, help="differences this small do not count as worse")
     args = parser.parse_args(argv)
     try:
-        rows = compare(contents_of(args.base), contents_of(args.new), args.tolerance)
-    except (OSError, KeyError, StopIteration, json.JSONDecodeError) as exc:
+        base, new = prompt_sets(args.base), prompt_sets(args.new)
+    except (OSError, KeyError, TypeError, json.JSONDecodeError) as exc:
         print(f"error: cannot read the side_accuracy JSON files: {exc}", file=sys.stderr)
         return 2
+    shared = [name for name in base if name in new]
+    if not shared:
+        print(f"error: the runs share no prompt set ({', '.join(base)} against {', '.join(new)})", file=sys.stderr)
+        return 2
+    rows = compare(base[shared[0]], new[shared[0]], args.tolerance)
+    print(f"prompt set {shared[0]}")
     print(f"| content | pass {args.base.stem} | pass {args.new.stem} | skating {args.base.stem} | skating {args.new.stem} | worse |")
     print("|---|---|---|---|---|---|")
     for r in rows:

@@ -23,6 +23,7 @@ def test_a_content_is_worse_by_pass_rate_or_by_locomotion_skating(tmp_path, caps
            "bow": {"pass_rate": 0.9, "skating": 0.20}}  # bow is no locomotion: its skating does not count
     rows = {r["content"]: r["worse"] for r in compare(base, new)}
     assert rows == {"walk": True, "wave-left-hand": True, "bow": False}
+    assert [r["worse"] for r in compare(base, {"walk": new["walk"]}, tolerance=1.0)] == [False, True, True]  # gone
     assert {r["content"]: r["worse"] for r in compare(base, new, tolerance=0.1)} == {
         "walk": False, "wave-left-hand": False, "bow": False}
     assert main([str(_run(tmp_path / "a.json", base)), str(_run(tmp_path / "b.json", new))]) == 0
@@ -30,3 +31,6 @@ def test_a_content_is_worse_by_pass_rate_or_by_locomotion_skating(tmp_path, caps
     (tmp_path / "bad.json").write_text("{}")
     assert main([str(tmp_path / "a.json"), str(tmp_path / "bad.json")]) == 2
     assert capsys.readouterr().err.startswith("error: cannot read")
+    (tmp_path / "captions.json").write_text(json.dumps({"generated": {"captions@4s": {"contents": new}}}))
+    assert main([str(tmp_path / "a.json"), str(tmp_path / "captions.json")]) == 2  # other prompts: no comparison
+    assert "share no prompt set" in capsys.readouterr().err

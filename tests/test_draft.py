@@ -313,8 +313,17 @@ def test_teacher_steps_finish_a_draft_with_guided_ddim_steps_of_the_model_denois
         z0 = lcm.ddim_step(e_null + s * (e_cond - e_null), 481, -1, z)
         by_hand = pipe.latents_to_features(z0, L)
     assert np.allclose(out.features, by_hand, atol=1e-5)
-    one = pipe("a person walks", 1.5, seed=5, draft=True, num_inference_steps=1, repair=False)  # no room: none
-    assert not np.allclose(one.features, out.features, atol=1e-3)
+    calls.clear()  # one step leaves no room for a teacher step: the consistency step alone
+    one = pipe("a person walks", 1.5, seed=5, draft=True, num_inference_steps=1, repair=False,
+               callback=lambda k, n: calls.append((k, n)))
+    assert calls == [(1, 1)]
+    with torch.no_grad():
+        alone = pipe.latents_to_features(est, L)
+    assert np.allclose(one.features, alone, atol=1e-5)
+    three = pipe("a person walks", 1.5, seed=5, draft=True, num_inference_steps=3, repair=False)
+    pipe.draft_teacher = pipe.draft_denoiser.__class__(pipe.config.denoiser).eval()  # another teacher ...
+    assert not np.allclose(three.features, pipe("a person walks", 1.5, seed=5, draft=True, num_inference_steps=3,
+                                                repair=False).features, atol=1e-4)  # ... changes only the last step
     bad = {**data, "draft": {**data["draft"], "teacher_steps": 50}}
     (folder / "config.json").write_text(json.dumps(bad))
     with pytest.raises(CheckpointError, match="draft.teacher_steps"):
@@ -375,6 +384,29 @@ def test_a_bf16_draft_leaves_final_unchanged_and_keeps_its_rows_close_to_single_
     assert not bf16._draft_text_cache and not bf16._text_cache
 
 
+def test_a_drafts_teacher_is_the_float32_denoiser_whatever_finals_precision(tmp_path):
+    import json
+
+    from mld_core.pipeline import MLDPipeline
+    from mld_core.testing import tiny_model
+
+    folder = tiny_model(tmp_path / "m", draft=True)
+    data = json.loads((folder / "config.json").read_text())
+    data["draft"].update(teacher_steps=1, fresh_noise=0.0)
+    (folder / "config.json").write_text(json.dumps(data))
+    plain = MLDPipeline.from_pretrained(folder, draft_precision="fp32")
+    assert plain.draft_teacher is plain.denoiser
+    bf16_final = MLDPipeline.from_pretrained(folder, precision="bf16", draft_precision="fp32")
+    assert bf16_final.draft_teacher is not bf16_final.denoiser  # Final's weights are rounded to bf16: not its
+    draft = plain("a person walks", 1.5, seed=2, draft=True).joints
+    assert np.allclose(bf16_final("a person walks", 1.5, seed=2, draft=True).joints, draft, atol=1e-5)
+    bf16_draft = MLDPipeline.from_pretrained(folder, draft_precision="bf16")
+    teacher = bf16_draft.draft_teacher
+    assert teacher is not bf16_draft.denoiser and next(teacher.parameters()).dtype == torch.float32
+    assert {p[0].dtype for layer in teacher.transformer._packed.values() for p in layer.values()} == {torch.bfloat16}
+    assert 0 < np.abs(bf16_draft("a person walks", 1.5, seed=2, draft=True).joints - draft).max() < 0.05
+
+
 def test_auto_draft_precision_is_bf16_only_on_cpus_that_compute_it_natively(monkeypatch):
     import mld_core.pipeline as pipeline
 
@@ -384,6 +416,9 @@ def test_auto_draft_precision_is_bf16_only_on_cpus_that_compute_it_natively(monk
     assert pipeline.draft_precision_for("auto") == "fp32" and pipeline.draft_precision_for("bf16") == "bf16"
     with pytest.raises(ValueError, match="draft_precision must be one of auto, fp32, bf16"):
         pipeline.draft_precision_for("fp16")
+    monkeypatch.setattr(pipeline, "packing_available", lambda: False)  # no oneDNN: no bf16 products
+    with pytest.warns(UserWarning, match="runs in fp32"):
+        assert pipeline.draft_precision_for("bf16") == "fp32"
 
 
 def test_an_encoder_passed_in_is_the_drafts_too(tmp_path):

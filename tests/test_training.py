@@ -183,6 +183,8 @@ def test_draft_distillation_trains_resumes_and_installs(folder, tmp_path):
     # the run folder is a model folder with a Draft; installing copies it (fp16) into the teacher's folder
     run_pipe = MLDPipeline.from_pretrained(run)
     assert run_pipe.config.draft.denoiser.guidance_input and run_pipe.config.provenance["draft_steps"] == 50
+    d = run_pipe.config.draft  # the sampler the shipped Draft uses (docs/draft.md), not LCM's defaults
+    assert (d.num_inference_steps, d.teacher_steps, d.fresh_noise) == (2, 1, 0.0)
     installed = tmp_path / "installed"
     shutil.copytree(teacher, installed)
     assert main(args[:6] + ["--teacher", str(installed), "--out", str(tmp_path / "draft2"), "--threads", "1",
@@ -207,7 +209,10 @@ def test_draft_distillation_trains_resumes_and_installs(folder, tmp_path):
     ([], {"guidance_min": "high"}, "guidance_min must be a number"),
     ([], {"save_every": 0}, "save_every must be between"),
     ([], {"draft_steps": 60}, "draft_steps must be between 1 and 50"),
-], ids=["minutes", "steps", "lr", "guidance", "guidance-text", "save-every", "draft-steps"])
+    ([], {"teacher_steps": 50}, "teacher_steps must be between 0 and 49"),
+    ([], {"fresh_noise": 2.0}, "fresh_noise must be between 0"),
+], ids=["minutes", "steps", "lr", "guidance", "guidance-text", "save-every", "draft-steps", "teacher-steps",
+        "fresh-noise"])
 def test_train_draft_refuses_bad_settings_before_any_work(folder, tmp_path, capsys, flags, config, words):
     cfg = tmp_path / "draft.json"
     cfg.write_text(json.dumps(config))

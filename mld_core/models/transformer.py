@@ -69,8 +69,8 @@ class SkipTransformer(nn.Module):
         """Keep oneDNN-prepacked copies of the layers' weights for inference without padding masks (the denoiser's
         steps, the decoding of rows of one length): each matrix is reordered once instead of on every call, which
         halves a step's time on a CPU at the few tokens a step runs. ``dtype`` (e.g. bfloat16) runs the matrix
-        products in that precision while layer norms, attention and the residual stream keep the module's, as
-        autocast does. A snapshot: ``train()`` drops it. False where oneDNN is unavailable."""
+        products, and the attention between them, in that precision while layer norms and the residual stream keep
+        the module's, much as autocast does. A snapshot: ``train()`` drops it. False where oneDNN is unavailable."""
         self._packed = {}
         if not _packing_available(self):
             return False

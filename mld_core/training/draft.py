@@ -58,6 +58,8 @@ class DraftTrainConfig:
     original_steps: int = 50
     huber_c: float = 0.001
     draft_steps: int = 2  # the Draft's default number of steps, written into config.json
+    teacher_steps: int = 1  # ... the last of them guided steps of the teacher (config draft.teacher_steps; draft.md)
+    fresh_noise: float = 0.0  # share of new noise when re-noising between steps (config draft.fresh_noise)
     crops_per_clip: int = 6
     balance_power: float = 0.7
     save_every: int = 250
@@ -74,6 +76,8 @@ class DraftTrainConfig:
                              ("save_every", 1, 10**9)):
             inputs.int_in_range(getattr(self, name), name, lo, hi)
         inputs.int_in_range(self.draft_steps, "draft_steps", 1, self.original_steps)
+        inputs.int_in_range(self.teacher_steps, "teacher_steps", 0, self.original_steps - 1)
+        inputs.number_in_range(self.fresh_noise, "fresh_noise", 0.0, 1.0)
         for name, lo, hi in (("lr", 1e-12, 1.0), ("ema_decay", 0.0, 0.999999), ("huber_c", 1e-12, 1.0),
                              ("decay_start", 0.0, 1.0), ("balance_power", 0.0, 1.0)):
             inputs.number_in_range(getattr(self, name), name, lo, hi)
@@ -127,7 +131,8 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
     teacher.eval().requires_grad_(False)
     draft = DraftConfig(denoiser=copy.deepcopy(base.denoiser), num_inference_steps=cfg.draft_steps,
                         original_steps=cfg.original_steps, guidance_min=cfg.guidance_min,
-                        guidance_max=cfg.guidance_max, guidance_scale=cfg.default_guidance)
+                        guidance_max=cfg.guidance_max, guidance_scale=cfg.default_guidance,
+                        teacher_steps=cfg.teacher_steps, fresh_noise=cfg.fresh_noise)
     draft.denoiser.guidance_input = True
     student = LatentDenoiser(draft.denoiser)
     student.load_state_dict(teacher.state_dict(), strict=False)  # all but the new guidance MLP
