@@ -155,6 +155,7 @@ class MLDPipeline:
                     text_encoder = load_text_encoder(config.text_encoder)
                 except (ValueError, TypeError) as exc:
                     raise CheckpointError(f"{model_dir / 'config.json'}: text_encoder: {exc}") from None
+        draft_precision = draft_precision_for(draft_precision, device)  # resolved once (and warned once)
         draft, draft_problem, draft_text = None, "", None
         if config.draft is not None and denoiser is not None:
             try:  # a broken Draft costs only the Draft: Final still samples
@@ -163,8 +164,7 @@ class MLDPipeline:
             except CheckpointError as exc:
                 draft, draft_problem = None, str(exc)
                 warnings.warn(f"Draft mode is unavailable: {exc}", stacklevel=2)
-            if draft is not None and own_text and text_encoder is not None \
-                    and draft_precision_for(draft_precision, device) == "bf16":
+            if draft is not None and own_text and text_encoder is not None and draft_precision == "bf16":
                 draft_text = _text_encoder_in_bf16(config.text_encoder)
         if len(config.mean) != config.vae.feature_dim or len(config.std) != config.vae.feature_dim:
             raise CheckpointError(f"{model_dir / 'config.json'}: mean/std must have {config.vae.feature_dim} values")

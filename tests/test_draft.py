@@ -282,16 +282,25 @@ def test_a_draft_has_its_own_default_guidance(tmp_path):
         MLDPipeline.from_pretrained(folder)
 
 
-def test_teacher_steps_finish_a_draft_with_guided_ddim_steps_of_the_model_denoiser(tmp_path):
+def _tiny_model_with_a_teacher_step(folder):
+    """A tiny model whose Draft samples as the bundled one does: a consistency step, then a teacher step."""
     import json
 
     from mld_core.testing import tiny_model
 
-    folder = tiny_model(tmp_path / "m", draft=True)
+    folder = tiny_model(folder, draft=True)
     data = json.loads((folder / "config.json").read_text())
     data["draft"].update(teacher_steps=1, fresh_noise=0.0)
     (folder / "config.json").write_text(json.dumps(data))
+    return folder, data
+
+
+def test_teacher_steps_finish_a_draft_with_guided_ddim_steps_of_the_model_denoiser(tmp_path):
+    import json
+
     from mld_core.pipeline import MLDPipeline
+
+    folder, data = _tiny_model_with_a_teacher_step(tmp_path / "m")
 
     pipe = MLDPipeline.from_pretrained(folder, draft_precision="fp32")
     calls = []
@@ -385,15 +394,9 @@ def test_a_bf16_draft_leaves_final_unchanged_and_keeps_its_rows_close_to_single_
 
 
 def test_a_drafts_teacher_is_the_float32_denoiser_whatever_finals_precision(tmp_path):
-    import json
-
     from mld_core.pipeline import MLDPipeline
-    from mld_core.testing import tiny_model
 
-    folder = tiny_model(tmp_path / "m", draft=True)
-    data = json.loads((folder / "config.json").read_text())
-    data["draft"].update(teacher_steps=1, fresh_noise=0.0)
-    (folder / "config.json").write_text(json.dumps(data))
+    folder, _ = _tiny_model_with_a_teacher_step(tmp_path / "m")
     plain = MLDPipeline.from_pretrained(folder, draft_precision="fp32")
     assert plain.draft_teacher is plain.denoiser
     bf16_final = MLDPipeline.from_pretrained(folder, precision="bf16", draft_precision="fp32")

@@ -67,25 +67,29 @@ class DraftTrainConfig:
     caches_from: str | None = None  # a denoiser run of the same VAE and data: reuse its latent and caption caches
 
     def __post_init__(self):
-        """Every setting checked before any work (a bad one would train nothing, or a Draft that cannot load)."""
+        """Every setting checked before any work (a bad one would train nothing, or a Draft that cannot load), and
+        kept as the checked number: "2" from a JSON --config is stored as 2, so config.json stays loadable."""
         if self.steps is not None:
-            inputs.int_in_range(self.steps, "steps", 1, 10**9)
-        if self.minutes is not None and inputs.finite_number(self.minutes, "minutes") <= 0:
-            raise InputError(f"minutes must be above 0, got {self.minutes}")
+            self.steps = inputs.int_in_range(self.steps, "steps", 1, 10**9)
+        if self.minutes is not None:
+            self.minutes = inputs.finite_number(self.minutes, "minutes")
+            if self.minutes <= 0:
+                raise InputError(f"minutes must be above 0, got {self.minutes}")
         for name, lo, hi in (("batch_size", 1, 65536), ("original_steps", 1, 1000), ("crops_per_clip", 1, 1000),
                              ("save_every", 1, 10**9)):
-            inputs.int_in_range(getattr(self, name), name, lo, hi)
-        inputs.int_in_range(self.draft_steps, "draft_steps", 1, self.original_steps)
-        inputs.int_in_range(self.teacher_steps, "teacher_steps", 0, self.original_steps - 1)
-        inputs.number_in_range(self.fresh_noise, "fresh_noise", 0.0, 1.0)
+            setattr(self, name, inputs.int_in_range(getattr(self, name), name, lo, hi))
+        self.draft_steps = inputs.int_in_range(self.draft_steps, "draft_steps", 1, self.original_steps)
+        self.teacher_steps = inputs.int_in_range(self.teacher_steps, "teacher_steps", 0, self.original_steps - 1)
         for name, lo, hi in (("lr", 1e-12, 1.0), ("ema_decay", 0.0, 0.999999), ("huber_c", 1e-12, 1.0),
-                             ("decay_start", 0.0, 1.0), ("balance_power", 0.0, 1.0)):
-            inputs.number_in_range(getattr(self, name), name, lo, hi)
-        if not 0 < inputs.finite_number(self.guidance_min, "guidance_min") <= inputs.finite_number(
-                self.guidance_max, "guidance_max"):
+                             ("decay_start", 0.0, 1.0), ("balance_power", 0.0, 1.0), ("fresh_noise", 0.0, 1.0)):
+            setattr(self, name, inputs.number_in_range(getattr(self, name), name, lo, hi))
+        self.guidance_min = inputs.finite_number(self.guidance_min, "guidance_min")
+        self.guidance_max = inputs.finite_number(self.guidance_max, "guidance_max")
+        if not 0 < self.guidance_min <= self.guidance_max:
             raise InputError("guidance_min must be above 0 and at most guidance_max")
         if self.default_guidance is not None:
-            inputs.number_in_range(self.default_guidance, "default_guidance", self.guidance_min, self.guidance_max)
+            self.default_guidance = inputs.number_in_range(self.default_guidance, "default_guidance",
+                                                           self.guidance_min, self.guidance_max)
 
 
 def huber(diff: torch.Tensor, c: float) -> torch.Tensor:
