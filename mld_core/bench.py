@@ -347,6 +347,7 @@ def run_bench(model=None, *, baseline: str | None = None, prompts: int = 32, sec
               "threads": torch.get_num_threads(), "torch": torch.__version__, "machine": platform.machine(),
               "processor": platform.processor() or platform.machine(), "guidance_scale": guidance,
               "precision": getattr(pipe, "precision", "fp32"), "draft_precision": getattr(pipe, "draft_precision", ""),
+              "draft_text_layers": getattr(pipe, "draft_text_layers", None),
               "methods": []}
 
     mld_kw = {"num_inference_steps": steps, "guidance_scale": guidance_scale}

@@ -28,6 +28,9 @@ class CheckpointError(Exception):
     """A model folder that cannot be used; the message names the file and what is wrong."""
 
 
+DRAFT_TEXT_WEIGHTS = "draft_text.safetensors"  # the Draft's distilled text encoder layers (draft.text_layers)
+
+
 @dataclass
 class DraftConfig:
     """The Draft denoiser (``draft.safetensors``): a latent consistency model distilled from the model's denoiser
@@ -44,6 +47,8 @@ class DraftConfig:
     fresh_noise: float = 1.0  # share of new noise when re-noising between steps (LCMScheduler; 1: LCM's sampler)
     teacher_steps: int = 0  # the last steps of a Draft (all but the first at most) are guided DDIM steps of the
     #                         model's own denoiser, which the Draft was distilled from: they finish the sample
+    text_layers: int | None = None  # the Draft encodes prompts with this many distilled layers of the model's
+    #                                 MiniLM (draft_text.safetensors; mld_core.training.draft_text); None: all of it
 
     def __post_init__(self):
         if isinstance(self.denoiser, dict):
@@ -209,6 +214,9 @@ def _check_draft(draft: DraftConfig, train_timesteps: int) -> None:
     fresh = draft.fresh_noise
     if isinstance(fresh, bool) or not isinstance(fresh, (int, float)) or not 0.0 <= fresh <= 1.0:
         raise ValueError(f"draft.fresh_noise must be a number in 0..1, got {fresh!r}")
+    layers = draft.text_layers
+    if layers is not None and (isinstance(layers, bool) or not isinstance(layers, int) or layers < 1):
+        raise ValueError(f"draft.text_layers must be null or a whole number above 0, got {layers!r}")
     if not draft.denoiser.guidance_input:
         raise ValueError("draft.denoiser must take the guidance scale as an input (guidance_input true)")
 

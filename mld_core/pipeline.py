@@ -23,7 +23,8 @@ import torch
 from mld_core.coverage import load_for_model, unavailable
 from mld_core.inputs import InputError
 from mld_core import inputs
-from mld_core.checkpoint import DEFAULT_MODEL_DIR, CheckpointError, ModelConfig, load_config, load_weights
+from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, CheckpointError, ModelConfig, load_config,
+                                 load_weights)
 from mld_core.models.denoiser import LatentDenoiser
 from mld_core.constraints import bone_stretch, planted_foot_speed
 from mld_core.motion.features import FOOT_CONTACT, features_to_joints
@@ -119,9 +120,9 @@ class MLDPipeline:
                 self.draft_teacher = self.denoiser
             if draft_dtype != torch.float32:
                 self.draft_vae = _vae_copy(vae, config.vae, self.device, draft_dtype)
-                self.draft_text_encoder = draft_text_encoder if draft_text_encoder is not None else text_encoder
-                if draft_text_encoder is not None and hasattr(draft_text_encoder, "pack_for_cpu_inference") \
-                        and self.device.type == "cpu":
+            if draft_text_encoder is not None:  # its own: distilled layers (draft.text_layers) and/or bf16
+                self.draft_text_encoder = draft_text_encoder
+                if hasattr(draft_text_encoder, "pack_for_cpu_inference") and self.device.type == "cpu":
                     draft_text_encoder.pack_for_cpu_inference()
             d = config.draft
             self.draft_scheduler = LCMScheduler(config.scheduler, d.original_steps, d.timestep_scaling, d.sigma_data,
@@ -164,8 +165,8 @@ class MLDPipeline:
             except CheckpointError as exc:
                 draft, draft_problem = None, str(exc)
                 warnings.warn(f"Draft mode is unavailable: {exc}", stacklevel=2)
-            if draft is not None and own_text and text_encoder is not None and draft_precision == "bf16":
-                draft_text = _text_encoder_in_bf16(config.text_encoder)
+            if draft is not None and own_text and text_encoder is not None:
+                draft_text = _draft_text_encoder(model_dir, config, draft_precision)
         if len(config.mean) != config.vae.feature_dim or len(config.std) != config.vae.feature_dim:
             raise CheckpointError(f"{model_dir / 'config.json'}: mean/std must have {config.vae.feature_dim} values")
         pipe = cls(config, vae, denoiser, text_encoder, device, precision, draft, draft_precision, draft_text)
@@ -192,6 +193,13 @@ class MLDPipeline:
     @property
     def max_seconds(self) -> float:
         return self.config.max_frames / self.config.fps
+
+    @property
+    def draft_text_layers(self) -> int | None:
+        """How many layers the Draft's text encoder runs (draft.text_layers, or all of the model's; None: an
+        encoder without layers)."""
+        layers = getattr(self.draft_text_encoder, "layers", None)
+        return len(layers) if layers is not None else None
 
     def frames_for(self, seconds: float) -> int:
         if not np.isfinite(seconds) or not self.min_seconds <= seconds <= self.max_seconds:
@@ -557,15 +565,26 @@ def _vae_copy(vae: MotionVAE, config, device: torch.device, dtype: torch.dtype) 
     return copy
 
 
-def _text_encoder_in_bf16(spec: dict):
-    """The model's text encoder loaded again in bfloat16 for the Draft, or None when its kind has no ``dtype``
-    option (the Draft then shares the float32 one)."""
-    from mld_core.models.text_encoder import load_text_encoder
+def _draft_text_encoder(model_dir: Path, config: ModelConfig, precision: str):
+    """The Draft's own text encoder, or None where it shares Final's: the model's encoder with its distilled layers
+    (config ``draft.text_layers``, draft_text.safetensors) and/or in bfloat16 (``precision`` "bf16"). A kind of
+    encoder without these options, or layers that cannot be read, leave the Draft the model's full encoder (with a
+    warning for the layers: the Draft is then slower, not wrong)."""
+    from mld_core.models.text_encoder import TextEncoderError, load_text_encoder
 
-    try:
-        return load_text_encoder({**spec, "dtype": "bfloat16"})
-    except TypeError:
-        return None
+    dtype = {"dtype": "bfloat16"} if precision == "bf16" else {}
+    attempts = [dtype] if not config.draft.text_layers else [
+        {**dtype, "layer_file": str(model_dir / DRAFT_TEXT_WEIGHTS)}, dtype]
+    for options in attempts:
+        if not options:
+            return None
+        try:
+            return load_text_encoder({**config.text_encoder, **options})
+        except (TypeError, TextEncoderError) as exc:
+            if "layer_file" in options:
+                warnings.warn(f"the Draft's distilled text encoder is unavailable ({exc}): the Draft encodes "
+                              "prompts with the model's full text encoder", stacklevel=3)
+    return None
 
 
 def _guided_eps(denoiser: LatentDenoiser, z: torch.Tensor, t, cond: torch.Tensor, null: torch.Tensor,

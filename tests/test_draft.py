@@ -165,7 +165,8 @@ def test_a_bad_draft_section_is_a_checkpoint_error(tmp_path):
         load_config(folder)
     for key, value, words in (("guidance_min", 9.0, "at most draft.guidance_max"), ("original_steps", 2.5,
                               "draft.original_steps"), ("sigma_data", float("nan"), "draft.sigma_data"),
-                              ("fresh_noise", 1.5, "draft.fresh_noise"), ("fresh_noise", "all", "draft.fresh_noise")):
+                              ("fresh_noise", 1.5, "draft.fresh_noise"), ("fresh_noise", "all", "draft.fresh_noise"),
+                              ("text_layers", 0, "draft.text_layers"), ("text_layers", 2.5, "draft.text_layers")):
         (folder / "config.json").write_text(json.dumps({**data, "draft": {**data["draft"], "num_inference_steps": 2,
                                                                            key: value}}))
         with pytest.raises(CheckpointError, match=words):
@@ -211,6 +212,26 @@ def test_packed_decoding_equals_the_masked_module_path(pipe):
         single = pipe.vae.decode(z[1:], torch.tensor([22]))  # no padding: the packed functional path
     assert torch.allclose(batch[1, :22], single[0], atol=1e-5)
     assert (batch[1, 22:] == 0).all()
+
+
+def test_the_decoders_fixed_queries_are_self_attended_once_per_length(pipe):
+    vae = pipe.vae
+    z = torch.randn(3, 1, 32)
+    memory = z + vae.latent_positions
+    queries = vae.frame_positions[:25].expand(3, -1, -1)
+    with torch.inference_mode():
+        vae.decoder._fixed_queries.clear()
+        plain = vae.decoder(queries, memory=memory)
+        cached = vae.decoder(queries, memory=memory, fixed_queries=25)
+        again = vae.decode(z, torch.tensor([25, 25, 25]))
+        assert set(vae.decoder._fixed_queries) == {25}
+        vae.decode(z[:1], torch.tensor([20]))
+        head = vae.head(cached)
+    assert torch.allclose(cached, plain, atol=1e-6)
+    assert torch.equal(again, head)
+    assert set(vae.decoder._fixed_queries) == {20, 25}
+    vae.decoder.pack_for_cpu_inference()  # new weights or precision: computed again
+    assert not vae.decoder._fixed_queries
 
 
 def test_packed_text_encoder_equals_the_plain_one():

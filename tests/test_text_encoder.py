@@ -336,3 +336,38 @@ def test_bad_inputs_and_specs(tiny):
         register_text_encoder("minilm", MiniLMEncoder.random)
     with pytest.raises(ValueError, match="dtype"):
         MiniLMEncoder.random(dtype="int8")
+
+
+# -- a shorter stack of the encoder's own layers (the Draft's text encoder) ---------------------------------------
+def test_kept_layers_saved_and_loaded_give_the_same_embeddings(tmp_path):
+    from mld_core.training.draft_text import save_layers
+
+    enc = MiniLMEncoder.random(seed=1, hidden=32, layers=3, heads=2, vocab_path="builtin")
+    same = enc.keep_layers([0, 1, 2])
+    texts = ["a person walks forward", "someone waves"]
+    assert torch.equal(same(texts).tokens, enc(texts).tokens)
+    short = enc.keep_layers([0, 2])
+    assert len(short.layers) == 2 and short.config.num_layers == 2 and len(enc.layers) == 3
+    assert not torch.allclose(short(texts).pooled, enc(texts).pooled)
+    save_layers(short, tmp_path / "layers.safetensors")
+    loaded = load_text_encoder({"kind": "minilm-random", "seed": 1, "hidden": 32, "layers": 3, "heads": 2,
+                                "vocab_path": "builtin", "layer_file": str(tmp_path / "layers.safetensors")})
+    assert len(loaded.layers) == 2 and loaded.spec["layer_file"] == str(tmp_path / "layers.safetensors")
+    assert torch.allclose(loaded(texts).tokens, short(texts).tokens, atol=1e-6)
+    with pytest.raises(ValueError, match="layer indices must lie in 0..2"):
+        enc.keep_layers([3])
+
+
+def test_a_bad_layer_file_is_one_clear_error(tmp_path):
+    from safetensors.torch import save_file
+
+    spec = {"kind": "minilm-random", "hidden": 32, "layers": 2, "heads": 2, "vocab_path": "builtin"}
+    with pytest.raises(TextEncoderError, match="cannot read the text encoder layers"):
+        load_text_encoder({**spec, "layer_file": str(tmp_path / "missing.safetensors")})
+    save_file({"something.else": torch.zeros(2)}, str(tmp_path / "other.safetensors"))
+    with pytest.raises(TextEncoderError, match="holds no layers encoder.layer.0..n-1"):
+        load_text_encoder({**spec, "layer_file": str(tmp_path / "other.safetensors")})
+    enc = MiniLMEncoder.random(seed=0, hidden=48, layers=1, heads=2, vocab_path="builtin")
+    save_file({k: v.contiguous() for k, v in enc.layer_weights().items()}, str(tmp_path / "wide.safetensors"))
+    with pytest.raises(TextEncoderError, match="expected .* floating point"):
+        load_text_encoder({**spec, "layer_file": str(tmp_path / "wide.safetensors")})

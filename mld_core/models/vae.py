@@ -80,7 +80,8 @@ class MotionVAE(nn.Module):
         queries = self.frame_positions[:T].expand(B, -1, -1)  # (B, T, d)
         mask = padding_mask(lengths, T)
         memory = z + self.latent_positions
-        out = self.head(self.decoder(queries, padding_mask=mask if mask.any() else None, memory=memory))  # (B, T, F)
+        out = self.head(self.decoder(queries, padding_mask=mask if mask.any() else None, memory=memory,
+                                     fixed_queries=T))  # (B, T, F): the queries depend on T alone
         return out.masked_fill(mask[..., None], 0.0)
 
     def forward(self, x: torch.Tensor, lengths: torch.Tensor, sample: bool = True):

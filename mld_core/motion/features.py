@@ -241,8 +241,8 @@ def features_to_joints(features):
         return _recover_joints(features)
     arr = np.asarray(features)
     _check_features(arr.shape)
-    out = _recover_joints(torch.from_numpy(arr.astype(np.float64)))
-    return out.numpy().astype(arr.dtype if arr.dtype.kind == "f" else np.float32)
+    out = _recover_joints_numpy(arr.astype(np.float64))
+    return out.astype(arr.dtype if arr.dtype.kind == "f" else np.float32)
 
 
 def _check_features(shape) -> None:
@@ -272,6 +272,23 @@ def _recover_joints(features: torch.Tensor) -> torch.Tensor:
     root_xz = root_pos * root_pos.new_tensor([1.0, 0.0, 1.0])
     world = world + root_xz[..., None, :]
     return torch.cat([root_pos[..., None, :], world], dim=-2)  # (..., T, 22, 3)
+
+
+def _recover_joints_numpy(f: np.ndarray) -> np.ndarray:
+    """_recover_joints in numpy, float64 (a take is many small operations: numpy keeps each one cheap)."""
+    half = f[..., 0]  # (..., T)
+    angle = np.cumsum(np.concatenate([np.zeros_like(half[..., :1]), half[..., :-1]], axis=-1), axis=-1)
+    zero = np.zeros_like(angle)
+    to_world = qinv(np.stack([np.cos(angle), zero, np.sin(angle), zero], axis=-1))  # (..., T, 4)
+    step = np.zeros(f.shape[:-1] + (3,))  # (..., T, 3): frame t-1 -> t in the facing frame of frame t
+    step[..., 1:, 0], step[..., 1:, 2] = f[..., :-1, 1], f[..., :-1, 2]
+    xz = np.cumsum(qrot(to_world, step), axis=-2)
+    root_pos = np.stack([xz[..., 0], f[..., 3], xz[..., 2]], axis=-1)  # (..., T, 3)
+    ric = f[..., RIC].reshape(f.shape[:-1] + (21, 3))  # (..., T, 21, 3)
+    world = qrot(to_world[..., None, :], ric)
+    world[..., 0] += root_pos[..., None, 0]
+    world[..., 2] += root_pos[..., None, 2]
+    return np.concatenate([root_pos[..., None, :], world], axis=-2)  # (..., T, 22, 3)
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -157,6 +157,18 @@ def _travel_share(model_step: np.ndarray, correction: np.ndarray, cfg: RepairCon
     return float(np.clip((1.0 - cfg.min_travel_kept) / max(1.0 - kept, 1e-9), 0.0, 1.0))
 
 
+def _chains() -> np.ndarray:
+    """(22, 21): row k marks the bones (by child joint - 1) from the pelvis to joint k."""
+    chains = np.zeros((sk.NUM_JOINTS, sk.NUM_JOINTS - 1))
+    for k in range(1, sk.NUM_JOINTS):  # parents come before children
+        chains[k] = chains[sk.PARENTS[k]]
+        chains[k, k - 1] = 1.0
+    return chains
+
+
+_CHAINS = _chains()
+
+
 def keep_bone_lengths(joints: np.ndarray, lengths: np.ndarray | None = None) -> np.ndarray:
     """Joints (T, 22, 3) rebuilt from the pelvis outwards with one length per bone (default: the take's median
     lengths), each bone keeping its direction."""
@@ -166,8 +178,5 @@ def keep_bone_lengths(joints: np.ndarray, lengths: np.ndarray | None = None) -> 
     norm = np.linalg.norm(bones, axis=-1, keepdims=True)  # (T, 21, 1)
     target = np.median(norm[..., 0], axis=0) if lengths is None else np.asarray(lengths, np.float64)[1:]
     dirs = np.where(norm > 1e-9, bones / np.maximum(norm, 1e-9), sk.RAW_OFFSETS[1:])
-    out = np.empty_like(j)
-    out[:, 0] = j[:, 0]
-    for k in range(1, sk.NUM_JOINTS):  # parents come before children
-        out[:, k] = out[:, parents[k]] + dirs[:, k - 1] * target[k - 1]
+    out = j[:, :1] + _CHAINS @ (dirs * target[:, None])  # (22, 21) @ (T, 21, 3) -> (T, 22, 3)
     return out.astype(np.asarray(joints).dtype if np.asarray(joints).dtype.kind == "f" else np.float64)

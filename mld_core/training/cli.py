@@ -192,6 +192,42 @@ def run_draft(args) -> int:
     return code
 
 
+def run_draft_text(args) -> int:
+    from mld_core.training.draft_text import DraftTextTrainConfig, install_draft_text, train_draft_text
+
+    _check_data(args.data)
+    teacher = _model_folder(args.teacher, "--teacher")
+    over = _overrides(args, DraftTextTrainConfig)
+    if args.lr is not None:
+        over["lr"] = args.lr
+
+    def make_config():  # every setting is checked here (DraftTextTrainConfig.__post_init__), before any work
+        return DraftTextTrainConfig(data=args.data, teacher=str(teacher), out=str(args.out), seed=args.seed,
+                                    threads=args.threads, steps=args.steps, minutes=args.minutes, **over)
+
+    code = _run(train_draft_text, make_config, args.out, args.resume)
+    if args.install:
+        from mld_core.checkpoint import CheckpointError
+
+        try:
+            install_draft_text(Path(args.out), teacher)
+        except (CheckpointError, OSError, ValueError) as exc:
+            raise UsageError(str(exc).splitlines()[0]) from None
+        print(f"installed the Draft's text encoder into {teacher}")
+    return code
+
+
+def _stage_options(p, config_name: str) -> None:
+    """The options train draft and train draft-text share."""
+    p.add_argument("--resume", action="store_true", help="continue the run in --out from its train_state.pt")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
+    p.add_argument("--steps", type=int, default=None, help="stop after this many optimiser steps")
+    p.add_argument("--minutes", type=float, default=None, help="stop after this much wall time")
+    p.add_argument("--lr", type=float, default=None)
+    p.add_argument("--config", type=Path, default=None, help=f"JSON overrides of {config_name}")
+
+
 def register(groups) -> None:
     p = groups["train"].add_parser("vae", help="stage 1: the motion VAE")
     _common(p)
@@ -209,12 +245,14 @@ def register(groups) -> None:
     p.add_argument("--out", required=True, help="the run folder (the teacher's folder plus draft.safetensors)")
     p.add_argument("--install", action="store_true",
                    help="when done, copy the Draft denoiser (fp16) and its config into the teacher's folder")
-    for flag in ("--resume", "--bf16"):
-        p.add_argument(flag, action="store_true")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
-    p.add_argument("--steps", type=int, default=None, help="stop after this many optimiser steps")
-    p.add_argument("--minutes", type=float, default=None, help="stop after this much wall time")
-    p.add_argument("--lr", type=float, default=None)
-    p.add_argument("--config", type=Path, default=None, help="JSON overrides of DraftTrainConfig")
+    p.add_argument("--bf16", action="store_true", help="bfloat16 autocast")
+    _stage_options(p, "DraftTrainConfig")
     p.set_defaults(func=run_draft)
+    p = groups["train"].add_parser("draft-text", help="Draft mode: distil the model's text encoder into fewer layers")
+    p.add_argument("--data", required=True, help="a HumanML3D-format folder: its train captions are the corpus")
+    p.add_argument("--teacher", default=None, help="the model folder whose text encoder to distil (default: bundled)")
+    p.add_argument("--out", required=True, help="the run folder (draft_text.safetensors, log.jsonl)")
+    p.add_argument("--install", action="store_true",
+                   help="when done, copy the layers (fp16) into the teacher's folder and set draft.text_layers")
+    _stage_options(p, "DraftTextTrainConfig")
+    p.set_defaults(func=run_draft_text)

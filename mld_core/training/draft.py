@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from mld_core import inputs
-from mld_core.checkpoint import DraftConfig, load_config, load_weights, save_json, save_weights
+from mld_core.checkpoint import DRAFT_TEXT_WEIGHTS, DraftConfig, load_config, load_weights, save_json, save_weights
 from mld_core.inputs import InputError
 from mld_core.models.denoiser import LatentDenoiser
 from mld_core.models.text_encoder import TextEmbedding
@@ -220,7 +220,10 @@ def install_draft(run: Path, model_dir: Path) -> None:
     student = LatentDenoiser(run_cfg.draft.denoiser)
     load_weights(Path(run) / DRAFT_WEIGHTS, student)
     save_weights(Path(model_dir) / DRAFT_WEIGHTS, student, torch.float16)
+    text_layers = cfg.draft.text_layers if cfg.draft is not None and (Path(model_dir) / DRAFT_TEXT_WEIGHTS).is_file() \
+        else None  # the Draft's distilled text encoder (train draft-text) belongs to the text encoder: it stays
     cfg.draft = run_cfg.draft
+    cfg.draft.text_layers = text_layers
     cfg.provenance["draft_training"] = run_cfg.provenance.get("draft_training", {})
     cfg.provenance["draft_steps"] = run_cfg.provenance.get("draft_steps", 0)
     save_json(Path(model_dir) / "config.json", cfg.to_dict())

@@ -1,0 +1,300 @@
+"""The Draft's text encoder: distil the model's MiniLM (6 layers) into a shorter stack of its own layers.
+
+    python -m mld_core train draft-text --data DIR --teacher MODEL_DIR --out RUN [--minutes 15] [--install]
+
+Every Draft take encodes its prompt, and the 6-layer MiniLM is a third of a Draft's time (docs/draft.md). The student
+keeps the teacher's embeddings and tokenizer and starts from copies of some of its layers (``init_layers``); it
+learns to give the teacher's last hidden states and pooled embedding, which is all the denoisers read, on the
+training split's captions and on variants of them (two captions spliced at a word, words dropped), so prompts
+that no caption spells out still land near the teacher's embedding. Loss per text: the mean squared error of the
+hidden states over its real tokens plus ``pooled_weight`` x (1 - cosine) of the pooled embeddings.
+
+The run folder holds ``draft_text.safetensors`` (the student's layers) and its log; ``--install`` copies the layers
+(fp16) into the model folder and sets config ``draft.text_layers``: the Draft then encodes with them
+(MLDPipeline.from_pretrained), Final keeps the full encoder.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from mld_core import inputs
+from mld_core.checkpoint import DRAFT_TEXT_WEIGHTS, load_config, save_json
+from mld_core.fileio import atomic_write
+from mld_core.inputs import InputError
+from mld_core.training.common import Budget, load_train_state, lr_factor, save_train_state, set_lr, setup_torch
+
+@dataclass
+class DraftTextTrainConfig:
+    data: str = ""
+    teacher: str = ""  # a model folder whose text encoder is the MiniLM
+    out: str = ""
+    seed: int = 0
+    threads: int | None = None
+    steps: int | None = None
+    minutes: float | None = None
+    batch_size: int = 64
+    lr: float = 1e-4
+    decay_start: float = 0.5
+    init_layers: list = field(default_factory=lambda: [0, 3, 5])  # the teacher's layers the student starts from
+    pooled_weight: float = 1.0
+    condition_weight: float = 1.0  # the model's denoisers' condition tokens of the texts (MSE / their variance)
+    splice_share: float = 0.3  # share of a batch's texts that splice two captions at a word
+    drop_share: float = 0.2  # ... that drop words of a caption
+    swap_share: float = 0.2  # ... that swap a caption's sides and directions (left <-> right, ...): pairs of texts
+    #                          that differ in one word, which the denoisers must tell apart
+    composed_share: float = 0.35  # share of all texts composed from phrases (composed_prompt: other wordings)
+    random_share: float = 0.15  # share of all texts that are random words of the vocabulary (every word's states)
+    val_texts: int = 256  # validation split captions scored at each save
+    save_every: int = 100
+
+    def __post_init__(self):
+        """Every setting checked before any work, and kept as the checked number."""
+        if self.steps is not None:
+            self.steps = inputs.int_in_range(self.steps, "steps", 1, 10**9)
+        if self.minutes is not None:
+            self.minutes = inputs.finite_number(self.minutes, "minutes")
+            if self.minutes <= 0:
+                raise InputError(f"minutes must be above 0, got {self.minutes}")
+        for name, lo, hi in (("batch_size", 1, 65536), ("val_texts", 1, 10**6), ("save_every", 1, 10**9)):
+            setattr(self, name, inputs.int_in_range(getattr(self, name), name, lo, hi))
+        for name, lo, hi in (("lr", 1e-12, 1.0), ("decay_start", 0.0, 1.0), ("pooled_weight", 0.0, 1e3),
+                             ("condition_weight", 0.0, 1e3),
+                             ("splice_share", 0.0, 1.0), ("drop_share", 0.0, 1.0), ("swap_share", 0.0, 1.0),
+                             ("composed_share", 0.0, 1.0), ("random_share", 0.0, 1.0)):
+            setattr(self, name, inputs.number_in_range(getattr(self, name), name, lo, hi))
+        if self.splice_share + self.drop_share + self.swap_share > 1.0:
+            raise InputError("splice_share + drop_share + swap_share must be at most 1")
+        if self.composed_share + self.random_share > 1.0:
+            raise InputError("composed_share + random_share must be at most 1")
+        if not isinstance(self.init_layers, (list, tuple)) or not self.init_layers:
+            raise InputError(f"init_layers must be a non-empty list of layer indices, got {self.init_layers!r}")
+        self.init_layers = [inputs.int_in_range(i, "init_layers", 0, 10**6) for i in self.init_layers]
+
+
+OPPOSITES = {"left": "right", "right": "left", "forward": "backward", "forwards": "backwards",
+             "backward": "forward", "backwards": "forwards", "up": "down", "down": "up", "clockwise":
+             "counterclockwise", "counterclockwise": "clockwise", "front": "back", "back": "front"}
+
+
+SUBJECTS = ("someone", "a person", "a man", "a woman", "the person", "he", "she", "an old man", "a child",
+            "the character", "a dancer", "a soldier", "a tired person", "a happy person", "the figure")
+ACTIONS = ("walks", "runs", "jogs", "sprints", "strolls", "steps", "marches", "limps", "shuffles", "sneaks", "jumps",
+           "hops", "skips", "kicks", "stomps", "waves", "raises", "lifts", "lowers", "swings", "shakes", "turns",
+           "spins", "twists", "bows", "nods", "crouches", "squats", "kneels", "sits down", "stands up", "leans",
+           "stretches", "punches", "throws", "catches", "claps", "dances", "climbs", "crawls", "stumbles", "reaches",
+           "points", "grabs", "pushes", "pulls", "carries", "salutes", "shrugs", "bends over", "looks around",
+           "backs away", "paces", "slides", "dodges", "blocks", "slashes", "stabs", "rolls", "falls down", "gets up")
+PARTS = ("the left hand", "the right hand", "both hands", "one hand", "the left arm", "the right arm", "both arms",
+         "the left leg", "the right leg", "the left foot", "the right foot", "the head", "the hips", "the torso",
+         "a sword", "a ball", "a heavy box", "a cup", "a rope", "their hat", "an imaginary object")
+WAYS = ("forward", "backward", "backwards", "to the left", "to the right", "in a circle", "in place", "ahead", "up",
+        "down", "sideways", "diagonally to the left", "diagonally to the right", "around", "across the room",
+        "straight ahead", "above the head", "over the shoulder", "towards the camera", "away from the camera")
+MANNERS = ("slowly", "quickly", "happily", "angrily", "sadly", "carefully", "nervously", "proudly", "lazily",
+           "with energy", "like an old man", "like a zombie", "like a robot", "at full speed", "several times",
+           "twice", "three times", "politely", "gracefully", "clumsily", "in a hurry", "while looking down")
+JOINS = (" and ", ", then ", " while ", " before ", " and then ", " after that ", ". then ")
+
+
+def composed_prompt(rng: np.random.Generator) -> str:
+    """A prompt composed from phrases (who, what, with which part, where, how), one or two clauses: wordings the
+    captions do not use, as users type them."""
+    def clause() -> str:
+        words = [ACTIONS[int(rng.integers(len(ACTIONS)))]]
+        for phrases, chance in ((PARTS, 0.4), (WAYS, 0.6), (MANNERS, 0.4)):
+            if rng.random() < chance:
+                words.append(phrases[int(rng.integers(len(phrases)))])
+        return " ".join(words)
+
+    text = f"{SUBJECTS[int(rng.integers(len(SUBJECTS)))]} {clause()}"
+    if rng.random() < 0.5:
+        text += JOINS[int(rng.integers(len(JOINS)))] + clause()
+    return text
+
+
+def text_variant(captions: list[str], rng: np.random.Generator, cfg: DraftTextTrainConfig,
+                 vocabulary: list[str] = ()) -> str:
+    """One training text: composed from phrases, random words of ``vocabulary``, or a caption: as it is, two
+    captions spliced at a word, with words dropped, or with its sides and directions swapped."""
+    source = rng.random()
+    if source < cfg.composed_share:
+        return composed_prompt(rng)
+    if source < cfg.composed_share + cfg.random_share and vocabulary:
+        return " ".join(vocabulary[int(i)] for i in rng.integers(len(vocabulary), size=int(rng.integers(2, 13))))
+    words = captions[int(rng.integers(len(captions)))].split()
+    r = rng.random()
+    if r < cfg.splice_share and len(words) > 1:
+        other = captions[int(rng.integers(len(captions)))].split()
+        words = words[: int(rng.integers(1, len(words)))] + other[int(rng.integers(len(other))):]
+    elif r < cfg.splice_share + cfg.drop_share:
+        words = [w for w in words if rng.random() > 0.15] or words
+    elif r < cfg.splice_share + cfg.drop_share + cfg.swap_share:
+        words = [_opposite(w) for w in words]
+    return " ".join(words)
+
+
+def whole_words(tokenizer) -> list[str]:
+    """The vocabulary's whole words (no word pieces, special tokens or punctuation)."""
+    return sorted(w for w in tokenizer.vocab if w.isalpha() and w.isascii() and len(w) > 1)
+
+
+def _opposite(word: str) -> str:
+    """left -> right, 'left,' -> 'right,', anything else unchanged."""
+    core = word.rstrip(".,;!?")
+    return OPPOSITES.get(core.lower(), core) + word[len(core):]
+
+
+def embeddings(encoder, texts: list[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Differentiable (hidden states (B, L, D), pooled (B, D), mask (B, L)) as MiniLMEncoder.forward computes them."""
+    ids, mask = encoder.tokenize(texts)
+    states = encoder.hidden_states(ids, mask)  # (B, L, D)
+    m = mask[..., None].float()  # (B, L, 1)
+    pooled = torch.nn.functional.normalize((states * m).sum(1) / m.sum(1).clamp(min=1), dim=-1)  # (B, D)
+    return states, pooled, mask
+
+
+def distil_loss(student, teacher, texts: list[str], cfg: DraftTextTrainConfig, denoisers: list = ()
+                ) -> tuple[torch.Tensor, dict]:
+    """Hidden-state MSE over real tokens + pooled_weight x (1 - cos) of the pooled embeddings + condition_weight x
+    the MSE (over its variance) of each denoiser's condition tokens, and the parts."""
+    from mld_core.models.text_encoder import TextEmbedding
+
+    with torch.no_grad():
+        goal = teacher(texts)
+    states, pooled, mask = embeddings(student, texts)
+    m = mask[..., None].float()  # (B, L, 1)
+    mse = (((states - goal.tokens.float()) ** 2) * m).sum() / (m.sum() * states.shape[-1])
+    cos = (pooled * goal.pooled.float()).sum(-1).mean()
+    loss, parts = mse + cfg.pooled_weight * (1 - cos), {"mse": mse.item(), "cos": cos.item()}
+    for k, den in enumerate(denoisers if cfg.condition_weight else ()):
+        L = den.config.max_text_tokens
+        with torch.no_grad():
+            aim = den.condition_tokens(len(texts), text=TextEmbedding(
+                goal.pooled.float(), goal.tokens[:, :L].float(), goal.mask[:, :L]))  # (B, C, d)
+        own = den.condition_tokens(len(texts), text=TextEmbedding(pooled, states[:, :L], mask[:, :L]))
+        cond = ((own - aim) ** 2).mean() / aim.var()
+        loss = loss + cfg.condition_weight * cond
+        parts[f"cond{k}"] = cond.item()
+    return loss, parts
+
+
+def trainable(encoder) -> nn.Module:
+    """The encoder with its layers' weights turned into parameters (a loaded MiniLM keeps them as frozen buffers)."""
+    for layer in encoder.layers:
+        layer.packed = {}
+        for name, buf in list(layer._buffers.items()):
+            del layer._buffers[name]
+            layer.register_parameter(name, nn.Parameter(buf.detach().clone().float()))
+    return encoder
+
+
+def save_layers(encoder, path: Path, dtype: torch.dtype = torch.float32) -> None:
+    """The encoder's layers as a safetensors file of HF-named tensors (MiniLMEncoder.from_pretrained(layer_file=))."""
+    from safetensors.torch import save_file
+
+    weights = {k: v.to(dtype).contiguous() for k, v in encoder.layer_weights().items()}
+    atomic_write(Path(path), lambda tmp: save_file(weights, str(tmp)))
+
+
+def train_draft_text(cfg: DraftTextTrainConfig, resume: bool = False) -> Path:
+    from mld_core.data.dataset import load_split
+    from mld_core.models.text_encoder import MiniLMEncoder, load_text_encoder
+    from mld_core.training.denoiser import text_units
+    from mld_core.training.vae import prepare_run_dir
+
+    out, teacher_dir = Path(cfg.out), Path(cfg.teacher)
+    base = load_config(teacher_dir)
+    teacher = load_text_encoder(base.text_encoder)
+    if not isinstance(teacher, MiniLMEncoder):
+        raise ValueError(f"--teacher {teacher_dir}: its text encoder ({base.text_encoder.get('kind')}) is no MiniLM")
+    if max(cfg.init_layers) >= len(teacher.layers):
+        raise ValueError(f"init_layers {cfg.init_layers}: the text encoder has {len(teacher.layers)} layers")
+    captions = sorted({c for u in text_units(load_split(cfg.data, "train"), base.fps) for c in u.captions if c})
+    val = sorted({c for u in text_units(load_split(cfg.data, "val"), base.fps) for c in u.captions if c})
+    if not captions:
+        raise ValueError(f"{cfg.data}: the train split has no captions")
+    prepare_run_dir(out, resume)
+    setup_torch(cfg.seed, cfg.threads)
+    teacher.pack_for_cpu_inference()
+
+    denoisers = _frozen_denoisers(teacher_dir, base) if cfg.condition_weight else []
+    vocabulary = whole_words(teacher.tokenizer)
+
+    # 1. The student: copies of the teacher's layers init_layers on its embeddings.
+    student = trainable(teacher.keep_layers(cfg.init_layers))
+    opt = torch.optim.AdamW([p for p in student.parameters()], lr=cfg.lr, weight_decay=0.0)
+    step, _ = load_train_state(out, student, opt) if resume else (0, {})
+    rng = np.random.default_rng(cfg.seed + step)
+    val = [val[i] for i in np.random.default_rng(cfg.seed).permutation(len(val))[: cfg.val_texts]] or captions[:1]
+    save_json(out / "train_config.json", {**asdict(cfg), "stage": "draft-text"})
+
+    def validate() -> dict:
+        with torch.no_grad():
+            _, parts = distil_loss(student, teacher, val, cfg, denoisers)
+        return {f"val_{k}": v for k, v in parts.items()}
+
+    # 2. Distillation.
+    log = open(out / "log.jsonl", "a")
+    if step == 0:
+        log.write(json.dumps({"step": 0, **validate()}) + "\n")
+    budget, running = Budget(cfg.steps, cfg.minutes), None
+    while not budget.done(step):
+        set_lr(opt, cfg.lr * lr_factor(budget.progress(step), cfg.decay_start))
+        texts = [text_variant(captions, rng, cfg, vocabulary) for _ in range(cfg.batch_size)]
+        loss, _ = distil_loss(student, teacher, texts, cfg, denoisers)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(student.parameters(), 1.0)
+        opt.step()
+        step += 1
+        running = loss.item() if running is None else 0.95 * running + 0.05 * loss.item()
+        if step % cfg.save_every == 0 or budget.done(step):
+            log.write(json.dumps({"step": step, "loss": running, **validate(),
+                                  "minutes": round(budget.minutes, 2)}) + "\n")
+            log.flush()
+            save_layers(student, out / DRAFT_TEXT_WEIGHTS)
+            save_train_state(out, student, opt, step)
+    log.close()
+    return out
+
+
+def _frozen_denoisers(model_dir: Path, base) -> list:
+    """The model folder's text-conditioned denoisers (its own and its Draft's), frozen: what reads the text."""
+    from mld_core.checkpoint import load_weights
+    from mld_core.models.denoiser import LatentDenoiser
+
+    found = []
+    for config, name in ((base.denoiser, "denoiser.safetensors"),
+                         (base.draft.denoiser if base.draft is not None else None, "draft.safetensors")):
+        if config is not None and config.cond == "text" and (model_dir / name).is_file():
+            den = LatentDenoiser(config)
+            load_weights(model_dir / name, den)
+            found.append(den.eval().requires_grad_(False))
+    return found
+
+
+def install_draft_text(run: Path, model_dir: Path) -> None:
+    """Copy a distilled Draft text encoder (its layers, fp16) into a model folder with a Draft, and set config
+    ``draft.text_layers``."""
+    from safetensors.torch import load_file
+
+    cfg = load_config(model_dir)
+    if cfg.draft is None:
+        raise ValueError(f"{model_dir} has no Draft (train one with `train draft` first)")
+    layers = load_file(str(Path(run) / DRAFT_TEXT_WEIGHTS))
+    n = len({k.split(".")[2] for k in layers})
+    fp16 = {k: v.half().contiguous() for k, v in layers.items()}
+    from safetensors.torch import save_file
+
+    atomic_write(Path(model_dir) / DRAFT_TEXT_WEIGHTS, lambda tmp: save_file(fp16, str(tmp)))
+    cfg.draft.text_layers = n
+    run_cfg = json.loads((Path(run) / "train_config.json").read_text())
+    cfg.provenance["draft_text_training"] = {k: v for k, v in run_cfg.items() if k != "stage"}
+    save_json(Path(model_dir) / "config.json", cfg.to_dict())
