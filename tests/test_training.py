@@ -280,7 +280,8 @@ def test_text_variants_keep_splice_drop_or_swap_sides():
 
     captions = ["a person turns left and walks forward.", "someone waves the right hand"]
     rng = np.random.default_rng(0)
-    only = dict(splice_share=0.0, drop_share=0.0, swap_share=0.0, composed_share=0.0, random_share=0.0)
+    only = dict(splice_share=0.0, drop_share=0.0, swap_share=0.0, reword_share=0.0, composed_share=0.0,
+                random_share=0.0)
     assert {text_variant(captions, rng, DraftTextTrainConfig(**only)) for _ in range(20)} == set(captions)
     swapped = {text_variant(captions, rng, DraftTextTrainConfig(**{**only, "swap_share": 1.0})) for _ in range(20)}
     assert swapped == {"a person turns right and walks backward.", "someone waves the left hand"}
@@ -288,6 +289,8 @@ def test_text_variants_keep_splice_drop_or_swap_sides():
     assert all(set(d.split()) <= set(" ".join(captions).split()) for d in dropped) and set(dropped) - set(captions)
     spliced = [text_variant(captions, rng, DraftTextTrainConfig(**{**only, "splice_share": 1.0})) for _ in range(40)]
     assert any(s.startswith("a person") and s.endswith("hand") for s in spliced)
+    reworded = {text_variant(captions, rng, DraftTextTrainConfig(**{**only, "reword_share": 1.0})) for _ in range(40)}
+    assert len(reworded) > 5 and all(r.split()[-1] in ("forward.", "hand", "ahead.", "arm", "front.") for r in reworded)
     composed = {text_variant(captions, rng, DraftTextTrainConfig(**{**only, "composed_share": 1.0})) for _ in range(20)}
     assert len(composed) > 15 and not composed & set(captions)
     vocabulary = ["alpha", "beta", "gamma"]

@@ -45,12 +45,13 @@ class DraftTextTrainConfig:
     init_layers: list = field(default_factory=lambda: [0, 3, 5])  # the teacher's layers the student starts from
     pooled_weight: float = 1.0
     condition_weight: float = 1.0  # the model's denoisers' condition tokens of the texts (MSE / their variance)
-    splice_share: float = 0.3  # share of a batch's texts that splice two captions at a word
-    drop_share: float = 0.2  # ... that drop words of a caption
+    splice_share: float = 0.25  # share of a batch's texts that splice two captions at a word
+    drop_share: float = 0.15  # ... that drop words of a caption
     swap_share: float = 0.2  # ... that swap a caption's sides and directions (left <-> right, ...): pairs of texts
     #                          that differ in one word, which the denoisers must tell apart
-    composed_share: float = 0.35  # share of all texts composed from phrases (composed_prompt: other wordings)
-    random_share: float = 0.15  # share of all texts that are random words of the vocabulary (every word's states)
+    reword_share: float = 0.3  # ... that say a caption in other words (reworded: subjects, synonyms)
+    composed_share: float = 0.25  # share of all texts composed from phrases (composed_prompt: other wordings)
+    random_share: float = 0.05  # share of all texts that are random words of the vocabulary (every word's states)
     val_texts: int = 256  # validation split captions scored at each save
     save_every: int = 100
 
@@ -67,10 +68,10 @@ class DraftTextTrainConfig:
         for name, lo, hi in (("lr", 1e-12, 1.0), ("decay_start", 0.0, 1.0), ("pooled_weight", 0.0, 1e3),
                              ("condition_weight", 0.0, 1e3),
                              ("splice_share", 0.0, 1.0), ("drop_share", 0.0, 1.0), ("swap_share", 0.0, 1.0),
-                             ("composed_share", 0.0, 1.0), ("random_share", 0.0, 1.0)):
+                             ("reword_share", 0.0, 1.0), ("composed_share", 0.0, 1.0), ("random_share", 0.0, 1.0)):
             setattr(self, name, inputs.number_in_range(getattr(self, name), name, lo, hi))
-        if self.splice_share + self.drop_share + self.swap_share > 1.0:
-            raise InputError("splice_share + drop_share + swap_share must be at most 1")
+        if self.splice_share + self.drop_share + self.swap_share + self.reword_share > 1.0:
+            raise InputError("splice_share + drop_share + swap_share + reword_share must be at most 1")
         if self.composed_share + self.random_share > 1.0:
             raise InputError("composed_share + random_share must be at most 1")
         if not isinstance(self.init_layers, (list, tuple)) or not self.init_layers:
@@ -83,8 +84,9 @@ OPPOSITES = {"left": "right", "right": "left", "forward": "backward", "forwards"
              "counterclockwise", "counterclockwise": "clockwise", "front": "back", "back": "front"}
 
 
-SUBJECTS = ("someone", "a person", "a man", "a woman", "the person", "he", "she", "an old man", "a child",
-            "the character", "a dancer", "a soldier", "a tired person", "a happy person", "the figure")
+SUBJECTS = ("someone", "a person", "a man", "a woman", "the person", "the man", "the woman", "he", "she",
+            "an old man", "an old woman", "a child", "a girl", "a boy", "the character", "a dancer", "a soldier",
+            "a tired person", "a happy person", "the figure", "my character", "a guy", "the lady", "an athlete")
 ACTIONS = ("walks", "runs", "jogs", "sprints", "strolls", "steps", "marches", "limps", "shuffles", "sneaks", "jumps",
            "hops", "skips", "kicks", "stomps", "waves", "raises", "lifts", "lowers", "swings", "shakes", "turns",
            "spins", "twists", "bows", "nods", "crouches", "squats", "kneels", "sits down", "stands up", "leans",
@@ -137,6 +139,40 @@ def text_variant(captions: list[str], rng: np.random.Generator, cfg: DraftTextTr
         words = [w for w in words if rng.random() > 0.15] or words
     elif r < cfg.splice_share + cfg.drop_share + cfg.swap_share:
         words = [_opposite(w) for w in words]
+    elif r < cfg.splice_share + cfg.drop_share + cfg.swap_share + cfg.reword_share:
+        return reworded(" ".join(words), rng)
+    return " ".join(words)
+
+
+CAPTION_SUBJECTS = ("a person", "the person", "someone", "a man", "the man", "a woman", "the woman", "a human",
+                    "person", "the figure")
+SYNONYMS = {"walks": ("strolls", "paces", "moves", "goes"), "runs": ("jogs", "sprints", "dashes"),
+            "raises": ("lifts", "puts up", "brings up"), "lowers": ("brings down", "drops", "puts down"),
+            "waves": ("shakes", "swings", "moves"), "jumps": ("hops", "leaps", "takes a jump"),
+            "bows": ("bends forward", "takes a bow"), "forward": ("ahead", "straight ahead", "to the front"),
+            "backward": ("back", "backwards", "to the back"), "quickly": ("fast", "rapidly", "in a hurry"),
+            "slowly": ("gently", "calmly", "at a slow pace"), "turns": ("rotates", "spins", "changes direction"),
+            "kicks": ("kicks out", "does a kick"), "hand": ("arm",), "arm": ("hand",), "steps": ("walks", "moves"),
+            "then": ("and then", "after that", "before that"), "his": ("their", "her"), "their": ("his", "her"),
+            "energetically": ("with energy", "vigorously"), "tired": ("exhausted", "weary"),
+            "happily": ("cheerfully", "with joy"), "angrily": ("furiously", "in anger")}
+
+
+def reworded(caption: str, rng: np.random.Generator) -> str:
+    """A caption in other words: another subject (``SUBJECTS``) and, for about half the words that have one, a
+    synonym, as users word their prompts."""
+    text = caption
+    for subject in CAPTION_SUBJECTS:
+        if text.lower().startswith(subject + " "):
+            text = SUBJECTS[int(rng.integers(len(SUBJECTS)))] + text[len(subject):]
+            break
+    words = []
+    for word in text.split():
+        core = word.rstrip(".,;!?")
+        options = SYNONYMS.get(core.lower())
+        if options and rng.random() < 0.5:
+            word = options[int(rng.integers(len(options)))] + word[len(core):]
+        words.append(word)
     return " ".join(words)
 
 
