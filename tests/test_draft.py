@@ -232,6 +232,11 @@ def test_the_decoders_fixed_queries_are_self_attended_once_per_length(pipe):
     assert set(vae.decoder._fixed_queries) == {20, 25}
     vae.decoder.pack_for_cpu_inference()  # new weights or precision: computed again
     assert not vae.decoder._fixed_queries
+    with torch.inference_mode():
+        vae.decode(z[:1], torch.tensor([25]))
+    vae.load_state_dict({k: v.clone() for k, v in vae.state_dict().items()})  # loaded weights: stale too
+    assert not vae.decoder._fixed_queries and not vae.decoder._packed
+    vae.decoder.pack_for_cpu_inference()
 
 
 def test_packed_text_encoder_equals_the_plain_one():

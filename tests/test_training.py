@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from mld_core.cli import main
 from mld_core.motion.features import joints_to_features, mean_std
@@ -254,6 +255,9 @@ def test_draft_text_distillation_trains_resumes_installs_and_only_the_draft_uses
     assert load_config(installed).draft.text_layers == 1 and (installed / "draft_text.safetensors").is_file()
     pipe = MLDPipeline.from_pretrained(installed)
     assert pipe.draft_text_layers == 1 and len(pipe.text_encoder.layers) == 2
+    fp32 = MLDPipeline.from_pretrained(installed, draft_precision="fp32")  # the fp16 file runs in float32 there
+    assert fp32.draft_text_layers == 1 and fp32.draft_text_encoder.dtype == torch.float32
+    assert np.isfinite(fp32("a person walks", 1.5, seed=3, draft=True).joints).all()
     final = pipe("a person walks", 1.5, seed=3)
     assert np.array_equal(final.joints, before("a person walks", 1.5, seed=3).joints)  # Final never changes
     draft = pipe("a person walks", 1.5, seed=3, draft=True)
@@ -273,6 +277,17 @@ def test_draft_text_distillation_trains_resumes_installs_and_only_the_draft_uses
     bad.write_text(json.dumps({"init_layers": [5]}))
     assert main(args[:7] + [str(tmp_path / "bad"), "--config", str(bad), "--steps", "1"]) == 2
     assert not (tmp_path / "bad").exists()
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({"batch_size": 8, "init_layers": [0]}))
+    assert main(args[:8] + ["--config", str(other), "--steps", "50", "--resume"]) == 2  # another student: refused
+    assert json.loads((run / "log.jsonl").read_text().splitlines()[-1])["step"] == 40
+    from mld_core.training.draft_text import install_draft_text
+
+    (run / "draft_text.safetensors").write_bytes(b"not a safetensors file")
+    before = (installed / "config.json").read_text()
+    with pytest.raises(ValueError, match="cannot install"):
+        install_draft_text(run, installed)
+    assert (installed / "config.json").read_text() == before  # nothing written
 
 
 def test_text_variants_keep_splice_drop_or_swap_sides():

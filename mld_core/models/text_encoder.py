@@ -568,7 +568,8 @@ def _with_layers(config: BertConfig, weights: dict, path: Path) -> tuple[BertCon
     short = replace(config, num_layers=len(indices))
     expected = {k: v for k, v in _expected_shapes(short).items() if k.startswith("encoder.layer.")}
     base = {k: v for k, v in weights.items() if not k.startswith("encoder.layer.")}
-    return short, {**base, **_load_safetensors(path, expected)}
+    dtype = weights[_EMBEDDING_KEYS["word"]].dtype  # the file may be fp16: the layers run in the encoder's dtype
+    return short, {**base, **{k: v.to(dtype) for k, v in _load_safetensors(path, expected).items()}}
 
 
 def _load_safetensors(path: Path, expected: dict[str, tuple[int, ...]]) -> dict[str, torch.Tensor]:

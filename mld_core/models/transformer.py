@@ -54,6 +54,7 @@ class SkipTransformer(nn.Module):
         self.norm = nn.LayerNorm(config.dim)
         self._packed: dict = {}  # id(layer) -> prepacked weights; see pack_for_cpu_inference
         self._fixed_queries: dict = {}  # key -> the first layer's self-attention of fixed queries (fixed_queries)
+        self.register_load_state_dict_post_hook(lambda module, _keys: module._forget_derived())
 
     def _plain(self, padding_mask, memory_padding_mask) -> bool:
         return padding_mask is None and memory_padding_mask is None and not self.training and not torch.is_grad_enabled()
@@ -97,8 +98,16 @@ class SkipTransformer(nn.Module):
 
     def train(self, mode: bool = True):
         if mode:
-            self._packed, self._fixed_queries = {}, {}
+            self._forget_derived()
         return super().train(mode)
+
+    def _apply(self, fn, *args, **kwargs):  # .to(), .half(), ...: what was derived from the weights is stale
+        self._forget_derived()
+        return super()._apply(fn, *args, **kwargs)
+
+    def _forget_derived(self) -> None:
+        """Drop the prepacked weights and cached first-layer queries (new weights, dtype or device)."""
+        self._packed, self._fixed_queries = {}, {}
 
     def forward(self, x: torch.Tensor, padding_mask: torch.Tensor | None = None, memory: torch.Tensor | None = None,
                 memory_padding_mask: torch.Tensor | None = None, fixed_queries=None) -> torch.Tensor:

@@ -1,13 +1,14 @@
 """The Draft's text encoder: distil the model's MiniLM (6 layers) into a shorter stack of its own layers.
 
-    python -m mld_core train draft-text --data DIR --teacher MODEL_DIR --out RUN [--minutes 15] [--install]
+    python -m mld_core train draft-text --data DIR --teacher MODEL_DIR --out RUN [--minutes 60] [--install]
 
-Every Draft take encodes its prompt, and the 6-layer MiniLM is a third of a Draft's time (docs/draft.md). The student
-keeps the teacher's embeddings and tokenizer and starts from copies of some of its layers (``init_layers``); it
-learns to give the teacher's last hidden states and pooled embedding, which is all the denoisers read, on the
-training split's captions and on variants of them (two captions spliced at a word, words dropped), so prompts
-that no caption spells out still land near the teacher's embedding. Loss per text: the mean squared error of the
-hidden states over its real tokens plus ``pooled_weight`` x (1 - cosine) of the pooled embeddings.
+Every Draft take encodes its prompt, and the 6-layer MiniLM is about a third of a Draft's time (docs/draft.md). The
+student keeps the teacher's embeddings and tokenizer and starts from copies of some of its layers (``init_layers``).
+It learns what the denoisers read of a text: per text, the mean squared error of the last hidden states over its real
+tokens, plus ``pooled_weight`` x (1 - cosine) of the pooled embeddings, plus ``condition_weight`` x the error of each
+of the model's denoisers' condition tokens (over their variance). The texts (text_variant): training captions as
+they are, spliced, with words dropped, with sides swapped or reworded; prompts composed from phrases; random words of
+the vocabulary, so prompts no caption spells out still land near the teacher's embedding.
 
 The run folder holds ``draft_text.safetensors`` (the student's layers) and its log; ``--install`` copies the layers
 (fp16) into the model folder and sets config ``draft.text_layers``: the Draft then encodes with them
@@ -30,8 +31,11 @@ from mld_core.fileio import atomic_write
 from mld_core.inputs import InputError
 from mld_core.training.common import Budget, load_train_state, lr_factor, save_train_state, set_lr, setup_torch
 
+
 @dataclass
 class DraftTextTrainConfig:
+    """Settings of ``train draft-text`` (saved as the run's train_config.json)."""
+
     data: str = ""
     teacher: str = ""  # a model folder whose text encoder is the MiniLM
     out: str = ""
@@ -124,7 +128,7 @@ def composed_prompt(rng: np.random.Generator) -> str:
 def text_variant(captions: list[str], rng: np.random.Generator, cfg: DraftTextTrainConfig,
                  vocabulary: list[str] = ()) -> str:
     """One training text: composed from phrases, random words of ``vocabulary``, or a caption: as it is, two
-    captions spliced at a word, with words dropped, or with its sides and directions swapped."""
+    captions spliced at a word, with words dropped, with its sides and directions swapped, or reworded."""
     source = rng.random()
     if source < cfg.composed_share:
         return composed_prompt(rng)
@@ -215,7 +219,7 @@ def distil_loss(student, teacher, texts: list[str], cfg: DraftTextTrainConfig, d
             aim = den.condition_tokens(len(texts), text=TextEmbedding(
                 goal.pooled.float(), goal.tokens[:, :L].float(), goal.mask[:, :L]))  # (B, C, d)
         own = den.condition_tokens(len(texts), text=TextEmbedding(pooled, states[:, :L], mask[:, :L]))
-        cond = ((own - aim) ** 2).mean() / aim.var()
+        cond = ((own - aim) ** 2).mean() / aim.var().clamp(min=1e-12)
         loss = loss + cfg.condition_weight * cond
         parts[f"cond{k}"] = cond.item()
     return loss, parts
@@ -240,26 +244,22 @@ def save_layers(encoder, path: Path, dtype: torch.dtype = torch.float32) -> None
 
 
 def train_draft_text(cfg: DraftTextTrainConfig, resume: bool = False) -> Path:
+    """Distil the teacher model folder's MiniLM into ``len(init_layers)`` layers; the run folder is cfg.out."""
     from mld_core.data.dataset import load_split
-    from mld_core.models.text_encoder import MiniLMEncoder, load_text_encoder
     from mld_core.training.denoiser import text_units
     from mld_core.training.vae import prepare_run_dir
 
     out, teacher_dir = Path(cfg.out), Path(cfg.teacher)
     base = load_config(teacher_dir)
-    teacher = load_text_encoder(base.text_encoder)
-    if not isinstance(teacher, MiniLMEncoder):
-        raise ValueError(f"--teacher {teacher_dir}: its text encoder ({base.text_encoder.get('kind')}) is no MiniLM")
-    if max(cfg.init_layers) >= len(teacher.layers):
-        raise ValueError(f"init_layers {cfg.init_layers}: the text encoder has {len(teacher.layers)} layers")
+    teacher = _teacher_encoder(base, teacher_dir, cfg.init_layers)
     captions = sorted({c for u in text_units(load_split(cfg.data, "train"), base.fps) for c in u.captions if c})
     val = sorted({c for u in text_units(load_split(cfg.data, "val"), base.fps) for c in u.captions if c})
     if not captions:
         raise ValueError(f"{cfg.data}: the train split has no captions")
+    if resume:
+        _check_same_student(out, cfg)
     prepare_run_dir(out, resume)
     setup_torch(cfg.seed, cfg.threads)
-    teacher.pack_for_cpu_inference()
-
     denoisers = _frozen_denoisers(teacher_dir, base) if cfg.condition_weight else []
     vocabulary = whole_words(teacher.tokenizer)
 
@@ -276,29 +276,54 @@ def train_draft_text(cfg: DraftTextTrainConfig, resume: bool = False) -> Path:
             _, parts = distil_loss(student, teacher, val, cfg, denoisers)
         return {f"val_{k}": v for k, v in parts.items()}
 
-    # 2. Distillation.
-    log = open(out / "log.jsonl", "a")
-    if step == 0:
-        log.write(json.dumps({"step": 0, **validate()}) + "\n")
-    budget, running = Budget(cfg.steps, cfg.minutes), None
-    while not budget.done(step):
-        set_lr(opt, cfg.lr * lr_factor(budget.progress(step), cfg.decay_start))
-        texts = [text_variant(captions, rng, cfg, vocabulary) for _ in range(cfg.batch_size)]
-        loss, _ = distil_loss(student, teacher, texts, cfg, denoisers)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(student.parameters(), 1.0)
-        opt.step()
-        step += 1
-        running = loss.item() if running is None else 0.95 * running + 0.05 * loss.item()
-        if step % cfg.save_every == 0 or budget.done(step):
-            log.write(json.dumps({"step": step, "loss": running, **validate(),
-                                  "minutes": round(budget.minutes, 2)}) + "\n")
-            log.flush()
-            save_layers(student, out / DRAFT_TEXT_WEIGHTS)
-            save_train_state(out, student, opt, step)
-    log.close()
+    # 2. Distillation; each save writes the layers and the train state, then logs the step.
+    with open(out / "log.jsonl", "a") as log:
+        if step == 0:
+            log.write(json.dumps({"step": 0, **validate()}) + "\n")
+        budget, running = Budget(cfg.steps, cfg.minutes), None
+        while not budget.done(step):
+            set_lr(opt, cfg.lr * lr_factor(budget.progress(step), cfg.decay_start))
+            texts = [text_variant(captions, rng, cfg, vocabulary) for _ in range(cfg.batch_size)]
+            loss, _ = distil_loss(student, teacher, texts, cfg, denoisers)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(student.parameters(), 1.0)
+            opt.step()
+            step += 1
+            running = loss.item() if running is None else 0.95 * running + 0.05 * loss.item()
+            if step % cfg.save_every == 0 or budget.done(step):
+                save_layers(student, out / DRAFT_TEXT_WEIGHTS)
+                save_train_state(out, student, opt, step)
+                log.write(json.dumps({"step": step, "loss": running, **validate(),
+                                      "minutes": round(budget.minutes, 2)}) + "\n")
+                log.flush()
     return out
+
+
+def _teacher_encoder(base, teacher_dir: Path, init_layers: list):
+    """The model's MiniLM, prepacked, checked to have the layers ``init_layers`` names (one-line errors)."""
+    from mld_core.models.text_encoder import MiniLMEncoder, TextEncoderError, load_text_encoder
+
+    try:
+        teacher = load_text_encoder(base.text_encoder)
+    except (TextEncoderError, TypeError) as exc:
+        raise ValueError(f"--teacher {teacher_dir}: its text encoder cannot be loaded: {exc}") from None
+    if not isinstance(teacher, MiniLMEncoder):
+        raise ValueError(f"--teacher {teacher_dir}: its text encoder ({base.text_encoder.get('kind')}) is no MiniLM")
+    if max(init_layers) >= len(teacher.layers):
+        raise ValueError(f"init_layers {init_layers}: the text encoder has {len(teacher.layers)} layers")
+    teacher.pack_for_cpu_inference()
+    return teacher
+
+
+def _check_same_student(out: Path, cfg: DraftTextTrainConfig) -> None:
+    """--resume continues the student the run started: the same init_layers."""
+    path = out / "train_config.json"
+    if path.is_file():
+        started = json.loads(path.read_text()).get("init_layers")
+        if started is not None and list(started) != list(cfg.init_layers):
+            raise ValueError(f"{out} trains a student of layers {started}; --resume cannot change init_layers "
+                             f"to {cfg.init_layers}")
 
 
 def _frozen_denoisers(model_dir: Path, base) -> list:
@@ -318,19 +343,20 @@ def _frozen_denoisers(model_dir: Path, base) -> list:
 
 def install_draft_text(run: Path, model_dir: Path) -> None:
     """Copy a distilled Draft text encoder (its layers, fp16) into a model folder with a Draft, and set config
-    ``draft.text_layers``."""
-    from safetensors.torch import load_file
+    ``draft.text_layers``. The layers are read and checked against the folder's text encoder before anything is
+    written; errors are one line (ValueError)."""
+    from mld_core.models.text_encoder import TextEncoderError, load_text_encoder
 
     cfg = load_config(model_dir)
     if cfg.draft is None:
         raise ValueError(f"{model_dir} has no Draft (train one with `train draft` first)")
-    layers = load_file(str(Path(run) / DRAFT_TEXT_WEIGHTS))
-    n = len({k.split(".")[2] for k in layers})
-    fp16 = {k: v.half().contiguous() for k, v in layers.items()}
-    from safetensors.torch import save_file
-
-    atomic_write(Path(model_dir) / DRAFT_TEXT_WEIGHTS, lambda tmp: save_file(fp16, str(tmp)))
-    cfg.draft.text_layers = n
-    run_cfg = json.loads((Path(run) / "train_config.json").read_text())
+    source = Path(run) / DRAFT_TEXT_WEIGHTS
+    try:
+        student = load_text_encoder({**cfg.text_encoder, "layer_file": str(source)})
+        run_cfg = json.loads((Path(run) / "train_config.json").read_text())
+    except (TextEncoderError, TypeError, OSError, ValueError) as exc:
+        raise ValueError(f"cannot install {source} into {model_dir}: {str(exc).splitlines()[0]}") from None
+    save_layers(student, Path(model_dir) / DRAFT_TEXT_WEIGHTS, torch.float16)
+    cfg.draft.text_layers = len(student.layers)
     cfg.provenance["draft_text_training"] = {k: v for k, v in run_cfg.items() if k != "stage"}
     save_json(Path(model_dir) / "config.json", cfg.to_dict())
