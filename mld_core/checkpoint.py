@@ -5,6 +5,7 @@ component and a ``MODEL_CARD.md``. Loading never unpickles; a missing or corrupt
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -47,6 +48,7 @@ class DraftConfig:
     fresh_noise: float = 1.0  # share of new noise when re-noising between steps (LCMScheduler; 1: LCM's sampler)
     teacher_steps: int = 0  # the last steps of a Draft (all but the first at most) are guided DDIM steps of the
     #                         model's own denoiser, which the Draft was distilled from: they finish the sample
+    teacher_guidance: float | None = None  # the guidance scale of the teacher steps (None: the Draft's scale)
     text_layers: int | None = None  # the Draft encodes prompts with this many distilled layers of the model's
     #                                 MiniLM (draft_text.safetensors; mld_core.training.draft_text); None: all of it
 
@@ -214,6 +216,10 @@ def _check_draft(draft: DraftConfig, train_timesteps: int) -> None:
     fresh = draft.fresh_noise
     if isinstance(fresh, bool) or not isinstance(fresh, (int, float)) or not 0.0 <= fresh <= 1.0:
         raise ValueError(f"draft.fresh_noise must be a number in 0..1, got {fresh!r}")
+    guidance = draft.teacher_guidance
+    if guidance is not None and (isinstance(guidance, bool) or not isinstance(guidance, (int, float))
+                                 or not math.isfinite(guidance) or guidance < 1.0):
+        raise ValueError(f"draft.teacher_guidance must be null or a finite number of at least 1, got {guidance!r}")
     layers = draft.text_layers
     if layers is not None and (isinstance(layers, bool) or not isinstance(layers, int) or layers < 1):
         raise ValueError(f"draft.text_layers must be null or a whole number above 0, got {layers!r}")

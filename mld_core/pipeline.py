@@ -427,6 +427,8 @@ class MLDPipeline:
         scheduler = self.draft_scheduler if draft else self.scheduler
         scheduler.set_timesteps(steps)
         scale = s if s != 1.0 and cond_kind != "none" else None  # None: the condition alone, no guidance
+        t_s = self.config.draft.teacher_guidance if draft and self.config.draft.teacher_guidance is not None else s
+        teacher_scale = t_s if t_s != 1.0 and cond_kind != "none" else None
         total = len(scheduler.timesteps)
         for k, t in enumerate(scheduler.timesteps):
             if not draft:  # 4a. a DDIM step of the denoiser
@@ -440,8 +442,8 @@ class MLDPipeline:
                 noise = (torch.stack([torch.randn(n, d, generator=g) for g in generators]).to(self.device)
                          if k + 1 < total and scheduler.needs_noise else None)
                 z, _ = scheduler.step(eps, t, z, noise)
-            else:  # 4c. a guided DDIM step of its teacher
-                eps = _guided_eps(self.draft_teacher, z, t, t_cond, t_null, lengths, scale)
+            else:  # 4c. a guided DDIM step of its teacher (at config draft.teacher_guidance, when set)
+                eps = _guided_eps(self.draft_teacher, z, t, t_cond, t_null, lengths, teacher_scale)
                 z = scheduler.ddim_step(eps, t, scheduler.next_timestep(t), z)
             if callback is not None and callback(k + 1, total) is False:
                 raise Cancelled(f"cancelled at step {k + 1} of {total}")

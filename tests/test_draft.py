@@ -166,7 +166,9 @@ def test_a_bad_draft_section_is_a_checkpoint_error(tmp_path):
     for key, value, words in (("guidance_min", 9.0, "at most draft.guidance_max"), ("original_steps", 2.5,
                               "draft.original_steps"), ("sigma_data", float("nan"), "draft.sigma_data"),
                               ("fresh_noise", 1.5, "draft.fresh_noise"), ("fresh_noise", "all", "draft.fresh_noise"),
-                              ("text_layers", 0, "draft.text_layers"), ("text_layers", 2.5, "draft.text_layers")):
+                              ("text_layers", 0, "draft.text_layers"), ("text_layers", 2.5, "draft.text_layers"),
+                              ("teacher_guidance", 0.5, "draft.teacher_guidance"),
+                              ("teacher_guidance", "high", "draft.teacher_guidance")):
         (folder / "config.json").write_text(json.dumps({**data, "draft": {**data["draft"], "num_inference_steps": 2,
                                                                            key: value}}))
         with pytest.raises(CheckpointError, match=words):
@@ -347,7 +349,13 @@ def test_teacher_steps_finish_a_draft_with_guided_ddim_steps_of_the_model_denois
                                        torch.cat([L, L])).chunk(2)
         z0 = lcm.ddim_step(e_null + s * (e_cond - e_null), 481, -1, z)
         by_hand = pipe.latents_to_features(z0, L)
+        z0_at_2 = lcm.ddim_step(e_null + 2.0 * (e_cond - e_null), 481, -1, z)  # config draft.teacher_guidance 2
+        by_hand_at_2 = pipe.latents_to_features(z0_at_2, L)
     assert np.allclose(out.features, by_hand, atol=1e-5)
+    pipe.config.draft.teacher_guidance = 2.0  # the teacher step's own scale; the consistency step keeps s
+    at_2 = pipe("a person walks", 1.5, seed=5, draft=True, repair=False)
+    pipe.config.draft.teacher_guidance = None
+    assert np.allclose(at_2.features, by_hand_at_2, atol=1e-5) and not np.allclose(at_2.features, by_hand, atol=1e-4)
     calls.clear()  # one step leaves no room for a teacher step: the consistency step alone
     one = pipe("a person walks", 1.5, seed=5, draft=True, num_inference_steps=1, repair=False,
                callback=lambda k, n: calls.append((k, n)))

@@ -185,7 +185,7 @@ def test_draft_distillation_trains_resumes_and_installs(folder, tmp_path):
     run_pipe = MLDPipeline.from_pretrained(run)
     assert run_pipe.config.draft.denoiser.guidance_input and run_pipe.config.provenance["draft_steps"] == 50
     d = run_pipe.config.draft  # the sampler the shipped Draft uses (docs/draft.md), not LCM's defaults
-    assert (d.num_inference_steps, d.teacher_steps, d.fresh_noise) == (2, 1, 0.0)
+    assert (d.num_inference_steps, d.teacher_steps, d.fresh_noise, d.teacher_guidance) == (2, 1, 0.0, 2.0)
     from mld_core.training.draft import DraftTrainConfig
 
     checked = DraftTrainConfig(teacher_steps="1", draft_steps="2", fresh_noise="0.5", batch_size="16")

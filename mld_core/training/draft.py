@@ -60,6 +60,7 @@ class DraftTrainConfig:
     draft_steps: int = 2  # the Draft's default number of steps, written into config.json
     teacher_steps: int = 1  # ... the last of them guided steps of the teacher (config draft.teacher_steps; draft.md)
     fresh_noise: float = 0.0  # share of new noise when re-noising between steps (config draft.fresh_noise)
+    teacher_guidance: float | None = 2.0  # the teacher steps' guidance scale (config draft.teacher_guidance; draft.md)
     crops_per_clip: int = 6
     balance_power: float = 0.7
     save_every: int = 250
@@ -87,6 +88,8 @@ class DraftTrainConfig:
         self.guidance_max = inputs.finite_number(self.guidance_max, "guidance_max")
         if not 0 < self.guidance_min <= self.guidance_max:
             raise InputError("guidance_min must be above 0 and at most guidance_max")
+        if self.teacher_guidance is not None:
+            self.teacher_guidance = inputs.number_in_range(self.teacher_guidance, "teacher_guidance", 1.0, 100.0)
         if self.default_guidance is not None:
             self.default_guidance = inputs.number_in_range(self.default_guidance, "default_guidance",
                                                            self.guidance_min, self.guidance_max)
@@ -136,7 +139,8 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
     draft = DraftConfig(denoiser=copy.deepcopy(base.denoiser), num_inference_steps=cfg.draft_steps,
                         original_steps=cfg.original_steps, guidance_min=cfg.guidance_min,
                         guidance_max=cfg.guidance_max, guidance_scale=cfg.default_guidance,
-                        teacher_steps=cfg.teacher_steps, fresh_noise=cfg.fresh_noise)
+                        teacher_steps=cfg.teacher_steps, fresh_noise=cfg.fresh_noise,
+                        teacher_guidance=cfg.teacher_guidance)
     draft.denoiser.guidance_input = True
     student = LatentDenoiser(draft.denoiser)
     student.load_state_dict(teacher.state_dict(), strict=False)  # all but the new guidance MLP
