@@ -524,6 +524,7 @@ def _manifest(args, paths, obj, map_source, pipe, model_dir, retarget, scene, re
             if args.draft else 0,  # how many of those were the model's own guided DDIM steps
             "draft_precision": getattr(pipe, "draft_precision", "fp32") if args.draft else "",
             "draft_text_layers": getattr(pipe, "draft_text_layers", None) if args.draft else None,
+            "draft_teacher_guidance": pipe.config.draft.teacher_guidance if args.draft else None,
             "guidance": args.guidance,
             "device": args.device,
             "exact": not args.no_exact,

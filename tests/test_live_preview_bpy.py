@@ -111,4 +111,5 @@ def test_batch_draft_records_the_steps_it_ran(tmp_path):
     manifest = json.loads(out.with_suffix(".json").read_text())
     assert manifest["settings"]["draft"] is True and manifest["settings"]["steps"] == 2  # not --steps' 50
     assert manifest["settings"]["draft_teacher_steps"] == 0  # the tiny model's Draft has no teacher steps
+    assert manifest["settings"]["draft_teacher_guidance"] is None and manifest["settings"]["draft_text_layers"] == 2
     assert manifest["takes"][0]["steps"] == 2
