@@ -569,24 +569,25 @@ def _vae_copy(vae: MotionVAE, config, device: torch.device, dtype: torch.dtype) 
 
 def _draft_text_encoder(model_dir: Path, config: ModelConfig, precision: str):
     """The Draft's own text encoder, or None where it shares Final's: the model's encoder with its distilled layers
-    (config ``draft.text_layers``, draft_text.safetensors) and/or in bfloat16 (``precision`` "bf16"). A kind of
-    encoder without these options, or layers that cannot be read, leave the Draft the model's full encoder (with a
-    warning for the layers: the Draft is then slower, not wrong)."""
+    (config ``draft.text_layers``, draft_text.safetensors) and/or in bfloat16 (``precision`` "bf16"). Layers that
+    cannot be read leave the Draft the model's full encoder, with a warning (the Draft is then slower, not wrong); a
+    kind of encoder without a ``dtype`` option leaves it Final's."""
     from mld_core.models.text_encoder import TextEncoderError, load_text_encoder
 
     dtype = {"dtype": "bfloat16"} if precision == "bf16" else {}
-    attempts = [dtype] if not config.draft.text_layers else [
-        {**dtype, "layer_file": str(model_dir / DRAFT_TEXT_WEIGHTS)}, dtype]
-    for options in attempts:
-        if not options:
-            return None
+    if config.draft.text_layers:
+        layers = {"layer_file": str(model_dir / DRAFT_TEXT_WEIGHTS)}
         try:
-            return load_text_encoder({**config.text_encoder, **options})
+            return load_text_encoder({**config.text_encoder, **dtype, **layers})
         except (TypeError, TextEncoderError) as exc:
-            if "layer_file" in options:
-                warnings.warn(f"the Draft's distilled text encoder is unavailable ({exc}): the Draft encodes "
-                              "prompts with the model's full text encoder", stacklevel=3)
-    return None
+            warnings.warn(f"the Draft's distilled text encoder is unavailable ({exc}): the Draft encodes prompts "
+                          "with the model's full text encoder", stacklevel=3)
+    if not dtype:
+        return None
+    try:
+        return load_text_encoder({**config.text_encoder, **dtype})
+    except TypeError:
+        return None
 
 
 def _guided_eps(denoiser: LatentDenoiser, z: torch.Tensor, t, cond: torch.Tensor, null: torch.Tensor,

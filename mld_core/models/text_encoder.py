@@ -541,16 +541,19 @@ class MiniLMEncoder(TextEncoder):
             x = layer(x, attn_mask)
         return x
 
+    def embed(self, ids: torch.Tensor, mask: torch.Tensor) -> TextEmbedding:
+        """Hidden states (zero on padding), their mean over the real tokens, L2-normalised, and the mask for token
+        ids (B, L) and their mask (B, L); differentiable (a distilled stack trains through it)."""
+        tokens = self.hidden_states(ids, mask).masked_fill(~mask.unsqueeze(-1), 0.0)  # (B, L, D)
+        summed = tokens.float().sum(dim=1)  # (B, D)
+        pooled = summed / mask.sum(dim=1, keepdim=True).clamp(min=1).float()
+        pooled = F.normalize(pooled, p=2, dim=-1, eps=1e-12).to(tokens.dtype)  # (B, D)
+        return TextEmbedding(pooled=pooled, tokens=tokens, mask=mask)
+
     def forward(self, texts: list[str]) -> TextEmbedding:
         ids, mask = self.tokenize(texts)
         with torch.no_grad():
-            tokens = self.hidden_states(ids, mask)  # (B, L, D)
-            m = mask.unsqueeze(-1)  # (B, L, 1)
-            tokens = tokens.masked_fill(~m, 0.0)
-            summed = tokens.float().sum(dim=1)  # (B, D)
-            pooled = summed / m.sum(dim=1).clamp(min=1).float()
-            pooled = F.normalize(pooled, p=2, dim=-1, eps=1e-12).to(tokens.dtype)  # (B, D)
-        return TextEmbedding(pooled=pooled, tokens=tokens, mask=mask)
+            return self.embed(ids, mask)
 
 
 def _with_layers(config: BertConfig, weights: dict, path: Path) -> tuple[BertConfig, dict]:

@@ -167,53 +167,39 @@ def _denoiser_config(args, over: dict):
 def run_draft(args) -> int:
     from mld_core.training.draft import DraftTrainConfig, install_draft, train_draft
 
-    _check_data(args.data)
-    teacher = _model_folder(args.teacher, "--teacher")
-    over = _overrides(args, DraftTrainConfig)
-
-    if args.lr is not None:
-        over["lr"] = args.lr
-    if args.bf16:
-        over["bf16"] = True
-
-    def make_config():  # every setting is checked here (DraftTrainConfig.__post_init__), before any work
-        return DraftTrainConfig(data=args.data, teacher=str(teacher), out=str(args.out), seed=args.seed,
-                                threads=args.threads, steps=args.steps, minutes=args.minutes, **over)
-
-    code = _run(train_draft, make_config, args.out, args.resume)
-    if args.install:
-        from mld_core.checkpoint import CheckpointError
-
-        try:
-            install_draft(Path(args.out), teacher)
-        except (CheckpointError, ValueError) as exc:
-            raise UsageError(str(exc)) from None
-        print(f"installed the Draft denoiser into {teacher}")
-    return code
+    extra = {"bf16": True} if args.bf16 else {}
+    return _run_distillation(args, DraftTrainConfig, train_draft, install_draft, "the Draft denoiser", extra)
 
 
 def run_draft_text(args) -> int:
     from mld_core.training.draft_text import DraftTextTrainConfig, install_draft_text, train_draft_text
 
+    return _run_distillation(args, DraftTextTrainConfig, train_draft_text, install_draft_text,
+                             "the Draft's text encoder")
+
+
+def _run_distillation(args, config_class, train, install, what: str, extra: dict | None = None) -> int:
+    """train draft / draft-text: distil a part of the --teacher model folder into --out, then with --install copy
+    the result into the teacher's folder."""
     _check_data(args.data)
     teacher = _model_folder(args.teacher, "--teacher")
-    over = _overrides(args, DraftTextTrainConfig)
+    over = {**_overrides(args, config_class), **(extra or {})}
     if args.lr is not None:
         over["lr"] = args.lr
 
-    def make_config():  # every setting is checked here (DraftTextTrainConfig.__post_init__), before any work
-        return DraftTextTrainConfig(data=args.data, teacher=str(teacher), out=str(args.out), seed=args.seed,
-                                    threads=args.threads, steps=args.steps, minutes=args.minutes, **over)
+    def make_config():  # every setting is checked here (the config's __post_init__), before any work
+        return config_class(data=args.data, teacher=str(teacher), out=str(args.out), seed=args.seed,
+                            threads=args.threads, steps=args.steps, minutes=args.minutes, **over)
 
-    code = _run(train_draft_text, make_config, args.out, args.resume)
+    code = _run(train, make_config, args.out, args.resume)
     if args.install:
         from mld_core.checkpoint import CheckpointError
 
         try:
-            install_draft_text(Path(args.out), teacher)
+            install(Path(args.out), teacher)
         except (CheckpointError, OSError, ValueError) as exc:
             raise UsageError(str(exc).splitlines()[0]) from None
-        print(f"installed the Draft's text encoder into {teacher}")
+        print(f"installed {what} into {teacher}")
     return code
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from mld_core import inputs
 from mld_core.fileio import atomic_write
 
 STATE_FILE = "train_state.pt"
@@ -49,6 +50,17 @@ def balanced_weights(labels: list, power: float) -> np.ndarray:
     counts = Counter(labels)
     w = np.array([counts[label] ** -power for label in labels], dtype=np.float64)
     return w / w.sum()
+
+
+def checked_budget(steps, minutes) -> tuple[int | None, float | None]:
+    """A run's --steps and --minutes checked (a whole number >= 1, a finite number > 0, or None) and as numbers."""
+    if steps is not None:
+        steps = inputs.int_in_range(steps, "steps", 1, 10**9)
+    if minutes is not None:
+        minutes = inputs.finite_number(minutes, "minutes")
+        if minutes <= 0:
+            raise inputs.InputError(f"minutes must be above 0, got {minutes}")
+    return steps, minutes
 
 
 class Budget:

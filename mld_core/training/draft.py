@@ -31,8 +31,8 @@ from mld_core.models.denoiser import LatentDenoiser
 from mld_core.models.text_encoder import TextEmbedding
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import LCMScheduler
-from mld_core.training.common import (Budget, balanced_weights, load_train_state, lr_factor, save_train_state, set_lr,
-                                     setup_torch)
+from mld_core.training.common import (Budget, balanced_weights, checked_budget, load_train_state, lr_factor,
+                                     save_train_state, set_lr, setup_torch)
 from mld_core.training.denoiser import LATENT_CACHE, TEXT_CACHE, _cached, embed_captions, encode_latents, text_units
 from mld_core.training.vae import prepare_run_dir
 
@@ -70,12 +70,7 @@ class DraftTrainConfig:
     def __post_init__(self):
         """Every setting checked before any work (a bad one would train nothing, or a Draft that cannot load), and
         kept as the checked number: "2" from a JSON --config is stored as 2, so config.json stays loadable."""
-        if self.steps is not None:
-            self.steps = inputs.int_in_range(self.steps, "steps", 1, 10**9)
-        if self.minutes is not None:
-            self.minutes = inputs.finite_number(self.minutes, "minutes")
-            if self.minutes <= 0:
-                raise InputError(f"minutes must be above 0, got {self.minutes}")
+        self.steps, self.minutes = checked_budget(self.steps, self.minutes)
         for name, lo, hi in (("batch_size", 1, 65536), ("original_steps", 1, 1000), ("crops_per_clip", 1, 1000),
                              ("save_every", 1, 10**9)):
             setattr(self, name, inputs.int_in_range(getattr(self, name), name, lo, hi))

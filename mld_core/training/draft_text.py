@@ -29,7 +29,8 @@ from mld_core import inputs
 from mld_core.checkpoint import DRAFT_TEXT_WEIGHTS, load_config, save_json
 from mld_core.fileio import atomic_write
 from mld_core.inputs import InputError
-from mld_core.training.common import Budget, load_train_state, lr_factor, save_train_state, set_lr, setup_torch
+from mld_core.training.common import (Budget, checked_budget, load_train_state, lr_factor, save_train_state,
+                                     set_lr, setup_torch)
 
 
 @dataclass
@@ -61,12 +62,7 @@ class DraftTextTrainConfig:
 
     def __post_init__(self):
         """Every setting checked before any work, and kept as the checked number."""
-        if self.steps is not None:
-            self.steps = inputs.int_in_range(self.steps, "steps", 1, 10**9)
-        if self.minutes is not None:
-            self.minutes = inputs.finite_number(self.minutes, "minutes")
-            if self.minutes <= 0:
-                raise InputError(f"minutes must be above 0, got {self.minutes}")
+        self.steps, self.minutes = checked_budget(self.steps, self.minutes)
         for name, lo, hi in (("batch_size", 1, 65536), ("val_texts", 1, 10**6), ("save_every", 1, 10**9)):
             setattr(self, name, inputs.int_in_range(getattr(self, name), name, lo, hi))
         for name, lo, hi in (("lr", 1e-12, 1.0), ("decay_start", 0.0, 1.0), ("pooled_weight", 0.0, 1e3),
@@ -191,15 +187,6 @@ def _opposite(word: str) -> str:
     return OPPOSITES.get(core.lower(), core) + word[len(core):]
 
 
-def embeddings(encoder, texts: list[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Differentiable (hidden states (B, L, D), pooled (B, D), mask (B, L)) as MiniLMEncoder.forward computes them."""
-    ids, mask = encoder.tokenize(texts)
-    states = encoder.hidden_states(ids, mask)  # (B, L, D)
-    m = mask[..., None].float()  # (B, L, 1)
-    pooled = torch.nn.functional.normalize((states * m).sum(1) / m.sum(1).clamp(min=1), dim=-1)  # (B, D)
-    return states, pooled, mask
-
-
 def distil_loss(student, teacher, texts: list[str], cfg: DraftTextTrainConfig, denoisers: list = ()
                 ) -> tuple[torch.Tensor, dict]:
     """Hidden-state MSE over real tokens + pooled_weight x (1 - cos) of the pooled embeddings + condition_weight x
@@ -208,7 +195,8 @@ def distil_loss(student, teacher, texts: list[str], cfg: DraftTextTrainConfig, d
 
     with torch.no_grad():
         goal = teacher(texts)
-    states, pooled, mask = embeddings(student, texts)
+    own_text = student.embed(*student.tokenize(texts))  # differentiable
+    states, pooled, mask = own_text.tokens, own_text.pooled, own_text.mask
     m = mask[..., None].float()  # (B, L, 1)
     mse = (((states - goal.tokens.float()) ** 2) * m).sum() / (m.sum() * states.shape[-1])
     cos = (pooled * goal.pooled.float()).sum(-1).mean()
