@@ -18,7 +18,7 @@ from mld_core.fileio import atomic_write
 from mld_core.models.denoiser import DenoiserConfig
 from mld_core.models.vae import VAEConfig
 from mld_core.motion.repair import RepairConfig
-from mld_core.schedulers import SchedulerConfig
+from mld_core.schedulers import LCMScheduler, SchedulerConfig
 
 FORMAT = "mld-core-model"
 FORMAT_VERSION = 1
@@ -51,6 +51,8 @@ class DraftConfig:
     teacher_guidance: float | None = None  # the guidance scale of the teacher steps (None: the Draft's scale)
     text_layers: int | None = None  # the Draft encodes prompts with this many distilled layers of the model's
     #                                 MiniLM (draft_text.safetensors; mld_core.training.draft_text); None: all of it
+    timesteps: list | None = None  # the timesteps of its num_inference_steps steps, points of the grid (descending);
+    #                                None: spread evenly. With a teacher step, the last is where the teacher takes over
 
     def __post_init__(self):
         if isinstance(self.denoiser, dict):
@@ -189,10 +191,11 @@ def check_config(config: ModelConfig) -> None:
         raise ValueError("std must be positive")
     _check_repair(config.repair)
     if config.draft is not None:
-        _check_draft(config.draft, config.scheduler.num_train_timesteps)
+        _check_draft(config.draft, config.scheduler)
 
 
-def _check_draft(draft: DraftConfig, train_timesteps: int) -> None:
+def _check_draft(draft: DraftConfig, scheduler: SchedulerConfig) -> None:
+    train_timesteps = scheduler.num_train_timesteps
     grid = draft.original_steps
     if isinstance(grid, bool) or not isinstance(grid, int) or not 1 <= grid <= train_timesteps:
         raise ValueError(f"draft.original_steps must be a whole number in 1..{train_timesteps}, got {grid!r}")
@@ -223,6 +226,12 @@ def _check_draft(draft: DraftConfig, train_timesteps: int) -> None:
     layers = draft.text_layers
     if layers is not None and (isinstance(layers, bool) or not isinstance(layers, int) or layers < 1):
         raise ValueError(f"draft.text_layers must be null or a whole number above 0, got {layers!r}")
+    if draft.timesteps is not None:
+        try:
+            LCMScheduler(scheduler, grid).checked_timesteps(
+                draft.timesteps, steps)
+        except ValueError as exc:
+            raise ValueError(f"draft.timesteps: {exc}") from None
     if not draft.denoiser.guidance_input:
         raise ValueError("draft.denoiser must take the guidance scale as an input (guidance_input true)")
 

@@ -258,7 +258,7 @@ def register(groups) -> None:
                         "last of them may be guided DDIM steps of the model's own denoiser, config draft.teacher_steps)")
     p.add_argument("--guidance", type=float, default=None, help="classifier-free guidance scale (default: the model's)")
     p.add_argument("--draft", action="store_true",
-                   help="Draft mode: the model's distilled denoiser, about 9x faster (docs/draft.md)")
+                   help="Draft mode: the model's distilled denoiser, about 10x faster (docs/draft.md)")
     p.add_argument("--variants", type=int, default=1, help="motions per prompt (seeds seed, seed+1, ...)")
     p.add_argument("--best", type=int, default=None, metavar="K",
                    help="score every variant (adherence, skating, float, penetration, jitter: docs/quality.md), "

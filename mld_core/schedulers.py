@@ -142,13 +142,28 @@ class LCMScheduler(_Schedule):
         self.timestep_scaling, self.sigma_data = timestep_scaling, sigma_data
         self.timesteps = self.grid.flip(0)[:1]
 
-    def set_timesteps(self, num_inference_steps: int) -> None:
-        """``num_inference_steps`` timesteps spread evenly over the grid, the largest first."""
+    def set_timesteps(self, num_inference_steps: int, timesteps: list[int] | None = None) -> None:
+        """``num_inference_steps`` timesteps spread evenly over the grid, the largest first; or ``timesteps``, as
+        many points of the grid, descending."""
         size = len(self.grid)
         if not 1 <= num_inference_steps <= size:
             raise ValueError(f"num_inference_steps must be in 1..{size} for this Draft model, got {num_inference_steps}")
+        if timesteps is not None:
+            self.timesteps = self.checked_timesteps(timesteps, num_inference_steps)
+            return
         picks = (size - 1) - (torch.arange(num_inference_steps) * size) // num_inference_steps  # distinct, (n,)
         self.timesteps = self.grid[picks]
+
+    def checked_timesteps(self, timesteps, count: int) -> torch.Tensor:
+        """``timesteps`` as a tensor when they are ``count`` distinct points of the grid in descending order."""
+        grid = set(self.grid.tolist())
+        values = list(timesteps) if isinstance(timesteps, (list, tuple)) else None
+        if values is None or len(values) != count or any(isinstance(t, bool) or t not in grid for t in values) \
+                or any(a <= b for a, b in zip(values, values[1:])):
+            raise ValueError(f"the Draft's timesteps must be {count} descending points of its grid "
+                             f"{self.grid[0].item()}, {self.grid[1].item()}, ..., {self.grid[-1].item()}; "
+                             f"got {timesteps!r}")
+        return torch.tensor([int(t) for t in values])
 
     def boundary(self, timesteps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(c_skip, c_out) per timestep: f(x, t) -> x as t -> 0, the x0 estimate elsewhere."""

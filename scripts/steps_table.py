@@ -87,6 +87,7 @@ def main(argv=None) -> int:
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--model", default=None, help="model folder (default: the bundled model)")
     parser.add_argument("--no-quality", action="store_true", help="timings only")
+    parser.add_argument("--no-timing", action="store_true", help="quality only (many seeds: the timings add nothing)")
     args = parser.parse_args(argv)
     import torch
 
@@ -98,17 +99,21 @@ def main(argv=None) -> int:
     for _, steps, draft in rows:
         pipe(["warm up"], seconds=4.0, num_inference_steps=steps, draft=draft)
     qualities = [{} if args.no_quality else quality(pipe, steps, draft, args.seeds) for _, steps, draft in rows]
-    cold, warm = timings(pipe, rows, args.repeat, False), timings(pipe, rows, args.repeat, True)
+    if args.no_timing:
+        cold = warm = [None] * len(rows)
+    else:
+        cold, warm = timings(pipe, rows, args.repeat, False), timings(pipe, rows, args.repeat, True)
     results = [(name, q, c, w) for (name, _, _), q, c, w in zip(rows, qualities, cold, warm)]
-    base = results[0][2]["total"]
+    base = results[0][2]["total"] if results[0][2] else None
     print("| row | physical pass | skating (locomotion) | jerk (m/s^3) | text ms | diffusion ms | decode ms | "
           "repair ms | joints ms | total cold ms | total warm ms | cold x first row |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, q, t, w in results:
         qual = (f"{q['pass']:.3f} | {q['skating']:.3f} | {q['jerk']:.1f}" if q else "- | - | -")
-        print(f"| {name} | {qual} | {1e3 * t['condition_s']:.1f} | {1e3 * t['diffusion_s']:.1f} | "
-              f"{1e3 * t['decode_s']:.1f} | {1e3 * t['repair_s']:.1f} | {1e3 * t['joints_s']:.1f} | "
-              f"{1e3 * t['total']:.1f} | {1e3 * w['total']:.1f} | {t['total'] / base:.3f} |")
+        times = (f"{1e3 * t['condition_s']:.1f} | {1e3 * t['diffusion_s']:.1f} | {1e3 * t['decode_s']:.1f} | "
+                 f"{1e3 * t['repair_s']:.1f} | {1e3 * t['joints_s']:.1f} | {1e3 * t['total']:.1f} | "
+                 f"{1e3 * w['total']:.1f} | {t['total'] / base:.3f}" if t else "- | - | - | - | - | - | - | -")
+        print(f"| {name} | {qual} | {times} |")
     if results[0][1]:
         print(f"({results[0][1]['takes']} takes per row)")
     return 0

@@ -168,7 +168,10 @@ def test_a_bad_draft_section_is_a_checkpoint_error(tmp_path):
                               ("fresh_noise", 1.5, "draft.fresh_noise"), ("fresh_noise", "all", "draft.fresh_noise"),
                               ("text_layers", 0, "draft.text_layers"), ("text_layers", 2.5, "draft.text_layers"),
                               ("teacher_guidance", 0.5, "draft.teacher_guidance"),
-                              ("teacher_guidance", "high", "draft.teacher_guidance")):
+                              ("teacher_guidance", "high", "draft.teacher_guidance"),
+                              ("timesteps", [981], "draft.timesteps"), ("timesteps", [481, 981], "draft.timesteps"),
+                              ("timesteps", [981, 480], "draft.timesteps"), ("timesteps", "late", "draft.timesteps"),
+                              ("timesteps", [981, True], "draft.timesteps")):
         (folder / "config.json").write_text(json.dumps({**data, "draft": {**data["draft"], "num_inference_steps": 2,
                                                                            key: value}}))
         with pytest.raises(CheckpointError, match=words):
@@ -323,6 +326,34 @@ def _tiny_model_with_a_teacher_step(folder):
     return folder, data
 
 
+def test_the_drafts_configured_timesteps_set_where_its_teacher_step_takes_over(tmp_path):
+    from mld_core.pipeline import MLDPipeline
+
+    folder, _ = _tiny_model_with_a_teacher_step(tmp_path / "m")
+    pipe = MLDPipeline.from_pretrained(folder, draft_precision="fp32")
+    even = pipe("a person walks", 1.5, seed=5, draft=True, repair=False)
+    assert pipe.draft_scheduler.timesteps.tolist() == [981, 481]  # null: spread evenly over the 50-point grid
+    pipe.config.draft.timesteps = [981, 581]
+    later = pipe("a person walks", 1.5, seed=5, draft=True, repair=False)
+    assert pipe.draft_scheduler.timesteps.tolist() == [981, 581]
+    s, L = pipe.default_guidance(draft=True), torch.tensor([30])  # by hand: re-noised to 581, then the teacher
+    z = torch.randn(1, 1, 32, generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        cond, null = pipe._condition(["a person walks"], None, "text", pipe.draft_denoiser)
+        lcm = pipe.draft_scheduler
+        est = lcm.denoised(pipe.draft_denoiser(z, torch.tensor([981]), cond, L, guidance=torch.tensor([s])),
+                           torch.tensor(981), z)
+        a981, a581 = lcm.alphas_cumprod[981], lcm.alphas_cumprod[581]
+        z = a581.sqrt() * est + (1 - a581).sqrt() * (z - a981.sqrt() * est) / (1 - a981).sqrt()
+        t_cond, t_null = pipe._condition(["a person walks"], None, "text", pipe.denoiser)
+        e_null, e_cond = pipe.denoiser(torch.cat([z, z]), torch.tensor([581, 581]), torch.cat([t_null, t_cond]),
+                                       torch.cat([L, L])).chunk(2)
+        by_hand = pipe.latents_to_features(lcm.ddim_step(e_null + s * (e_cond - e_null), 581, -1, z), L)
+    assert np.allclose(later.features, by_hand, atol=1e-5) and not np.allclose(later.features, even.features, atol=1e-4)
+    pipe("a person walks", 1.5, seed=5, draft=True, num_inference_steps=3, repair=False)
+    assert len(pipe.draft_scheduler.timesteps) == 3  # other step counts spread evenly
+
+
 def test_teacher_steps_finish_a_draft_with_guided_ddim_steps_of_the_model_denoiser(tmp_path):
     import json
 
@@ -385,6 +416,57 @@ def test_the_pooled_text_tokens_are_the_same_with_and_without_gradients():
     with torch.no_grad():
         functional = pool(tokens, valid)
     assert torch.allclose(module_path, functional, atol=1e-6)
+
+
+def test_pooling_projected_tokens_folds_the_projection_and_follows_new_weights():
+    from torch import nn
+
+    from mld_core.models.denoiser import AttentionPool
+
+    torch.manual_seed(0)
+    pool, project = AttentionPool(32, 2, 4).eval(), nn.Linear(48, 32)
+    tokens, valid = torch.randn(3, 7, 48), torch.ones(3, 7, dtype=torch.bool)
+    valid[1, 4:], valid[2, 1:] = False, False
+    with torch.enable_grad():
+        reference = pool(project(tokens), valid)  # the module path, projection first
+    with torch.no_grad():
+        folded = pool.pool_projected(tokens, valid, project)
+        assert pool._fold is not None
+        again = pool.pool_projected(tokens, valid, project)
+        project.weight.mul_(2.0)  # an in-place update (an optimiser step, load_state_dict) ...
+        changed = pool.pool_projected(tokens, valid, project)
+    torch.testing.assert_close(folded, reference, atol=1e-5, rtol=0)
+    assert torch.equal(again, folded)
+    with torch.enable_grad():
+        torch.testing.assert_close(changed, pool(project(tokens), valid), atol=1e-5, rtol=0)  # ... is followed
+    grads = pool.pool_projected(tokens, valid, project)  # with gradients: the plain path, which trains
+    grads.sum().backward()
+    assert project.weight.grad is not None and pool.queries.grad is not None
+
+
+def test_packed_skip_projections_serve_long_sequences_only():
+    from mld_core.models.transformer import SkipTransformer, TransformerConfig
+
+    torch.manual_seed(0)
+    stack = SkipTransformer(TransformerConfig(dim=32, heads=2, ff_dim=64, layers=3, cross_attention=True)).eval()
+    memory = torch.randn(1, 2, 32)
+    if not stack.pack_for_cpu_inference():
+        pytest.skip("this torch build has no oneDNN prepacked linear ops")
+    calls = []
+    real = stack.skip_projections[0].forward
+    stack.skip_projections[0].forward = lambda x: calls.append(x.shape[1]) or real(x)
+    with torch.no_grad():
+        for frames in (8, 40):
+            stack(torch.randn(1, frames, 32), memory=memory)
+    assert calls == [8]  # 40 frames took the packed product
+    x = torch.randn(1, 40, 32)
+    with torch.no_grad():
+        packed = stack(x, memory=memory)
+    with torch.enable_grad():
+        plain = stack(x, memory=memory)  # the module path
+    torch.testing.assert_close(packed, plain, atol=1e-4, rtol=0)
+    stack.load_state_dict(stack.state_dict())
+    assert stack._packed_projections == []
 
 
 def test_bf16_products_in_a_float32_stack_stay_close_to_float32():

@@ -112,4 +112,5 @@ def test_batch_draft_records_the_steps_it_ran(tmp_path):
     assert manifest["settings"]["draft"] is True and manifest["settings"]["steps"] == 2  # not --steps' 50
     assert manifest["settings"]["draft_teacher_steps"] == 0  # the tiny model's Draft has no teacher steps
     assert manifest["settings"]["draft_teacher_guidance"] is None and manifest["settings"]["draft_text_layers"] == 2
+    assert manifest["settings"]["draft_timesteps"] is None  # the tiny model's Draft spreads its steps evenly
     assert manifest["takes"][0]["steps"] == 2

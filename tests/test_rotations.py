@@ -165,3 +165,17 @@ def test_resample_quaternions_keeps_frames_and_duration(golden):
     a = R.rotation_angle_deg(qmul(qinv(quats[0].astype(np.float64)), mid.astype(np.float64)))
     b = R.rotation_angle_deg(qmul(qinv(quats[0].astype(np.float64)), quats[1].astype(np.float64)))
     assert np.allclose(a, 2 / 3 * b, atol=0.05)
+
+
+def test_turning_about_y_equals_rotating_by_its_quaternion():
+    from mld_core.motion.quaternion import qrot, turn_about_y
+
+    rng = np.random.default_rng(0)
+    half = rng.uniform(-4.0, 4.0, (5, 7))
+    v = rng.normal(size=(5, 7, 3))
+    q = np.stack([np.cos(half), np.zeros_like(half), np.sin(half), np.zeros_like(half)], axis=-1)
+    np.testing.assert_allclose(turn_about_y(half, v), qrot(q, v), atol=1e-12)
+    many = rng.normal(size=(5, 7, 4, 3))  # one angle for several vectors, as a take's joints per frame
+    np.testing.assert_allclose(turn_about_y(half[..., None], many), qrot(q[..., None, :], many), atol=1e-12)
+    quarter = turn_about_y(np.array(np.pi / 4), np.array([1.0, 2.0, 0.0]))  # +X turns to -Z by 90 degrees
+    np.testing.assert_allclose(quarter, [0.0, 2.0, -1.0], atol=1e-12)

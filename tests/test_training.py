@@ -185,7 +185,8 @@ def test_draft_distillation_trains_resumes_and_installs(folder, tmp_path):
     run_pipe = MLDPipeline.from_pretrained(run)
     assert run_pipe.config.draft.denoiser.guidance_input and run_pipe.config.provenance["draft_steps"] == 50
     d = run_pipe.config.draft  # the sampler the shipped Draft uses (docs/draft.md), not LCM's defaults
-    assert (d.num_inference_steps, d.teacher_steps, d.fresh_noise, d.teacher_guidance) == (2, 1, 0.0, 2.0)
+    assert (d.num_inference_steps, d.teacher_steps, d.fresh_noise, d.teacher_guidance) == (2, 1, 0.0, 1.5)
+    assert d.timesteps == [981, 601] and run_pipe("a person walks", 1.5, draft=True).joints.shape[1] == 30
     from mld_core.training.draft import DraftTrainConfig
 
     checked = DraftTrainConfig(teacher_steps="1", draft_steps="2", fresh_noise="0.5", batch_size="16")
@@ -216,8 +217,10 @@ def test_draft_distillation_trains_resumes_and_installs(folder, tmp_path):
     ([], {"draft_steps": 60}, "draft_steps must be between 1 and 50"),
     ([], {"teacher_steps": 50}, "teacher_steps must be between 0 and 49"),
     ([], {"fresh_noise": 2.0}, "fresh_noise must be between 0"),
+    ([], {"timesteps": [981, 600]}, "timesteps must be 2 descending points of its grid"),
+    ([], {"timesteps": [981, 601], "draft_steps": 3}, "timesteps must be 3 descending points of its grid"),
 ], ids=["minutes", "steps", "lr", "guidance", "guidance-text", "save-every", "draft-steps", "teacher-steps",
-        "fresh-noise"])
+        "fresh-noise", "timesteps-off-grid", "timesteps-count"])
 def test_train_draft_refuses_bad_settings_before_any_work(folder, tmp_path, capsys, flags, config, words):
     cfg = tmp_path / "draft.json"
     cfg.write_text(json.dumps(config))

@@ -67,11 +67,11 @@ class MLD_SceneSettings(bpy.types.PropertyGroup):
                       update=_setting_changed)
     mode: EnumProperty(
         name="Mode",
-        description="Draft: a step of the model's distilled denoiser and a guided step of its own, about 9x faster, "
+        description="Draft: a step of the model's distilled denoiser and a guided step of its own, about 10x faster, "
         "for trying prompts; "
         "Final: the full sampler (Steps)",
         items=[("FINAL", "Final", "The full sampler with the Steps below"),
-               ("DRAFT", "Draft", "A distilled step and a guided step: about 9x faster")],
+               ("DRAFT", "Draft", "A distilled step and a guided step: about 10x faster")],
         default="FINAL",
     )
     live_preview: BoolProperty(

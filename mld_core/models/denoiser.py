@@ -59,6 +59,7 @@ class AttentionPool(nn.Module):
         self.queries = nn.Parameter(torch.randn(k, dim) * 0.02)
         self.attn = nn.MultiheadAttention(dim, heads, batch_first=True)
         self.norm = nn.LayerNorm(dim)
+        self._fold, self._fold_key = None, None  # see pool_projected
 
     def forward(self, tokens: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         q = self.queries.expand(tokens.shape[0], -1, -1)  # (B, K, d)
@@ -74,6 +75,35 @@ class AttentionPool(nn.Module):
         key, value = F.linear(tokens, attn.in_proj_weight[d:], attn.in_proj_bias[d:]).chunk(2, dim=-1)  # (B, L, d)
         out = _attention(query, key, value, attn.num_heads, valid[:, None, None, :])  # (B, K, d)
         return F.linear(out, attn.out_proj.weight, attn.out_proj.bias)
+
+    def pool_projected(self, tokens: torch.Tensor, valid: torch.Tensor, project: nn.Linear) -> torch.Tensor:
+        """``forward(project(tokens), valid)`` at inference, in fewer products: ``project`` is folded into the keys'
+        and values' projection (the pool reads the projected tokens only through it) and the queries' projection
+        is the same on every call; both are derived once per weights. tokens (B, L, D_in) -> (B, K, d)."""
+        if self.training or torch.is_grad_enabled():
+            return self(project(tokens), valid)
+        query, kv_weight, kv_bias = self._folded(project)
+        B, d = tokens.shape[0], query.shape[-1]
+        key, value = F.linear(tokens.to(kv_weight.dtype), kv_weight, kv_bias).chunk(2, dim=-1)  # each (B, L, d)
+        out = _attention(query.expand(B, -1, -1), key, value, self.attn.num_heads, valid[:, None, None, :])
+        out = F.linear(out, self.attn.out_proj.weight, self.attn.out_proj.bias)  # (B, K, d)
+        return self.norm(out + self.queries)
+
+    def _folded(self, project: nn.Linear) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(projected queries (K, d), folded key/value weight (2d, D_in) and bias (2d,)), kept while the weights
+        they come from are unchanged (same storage, no in-place update)."""
+        attn = self.attn
+        sources = (self.queries, attn.in_proj_weight, attn.in_proj_bias, project.weight, project.bias)
+        key = tuple((t.data_ptr(), t._version, t.dtype) for t in sources)
+        if self._fold_key != key:
+            d = self.queries.shape[-1]
+            w, b = attn.in_proj_weight.float(), attn.in_proj_bias.float()
+            query = F.linear(self.queries.float(), w[:d], b[:d])  # (K, d)
+            kv_weight = w[d:] @ project.weight.float()  # (2d, d) @ (d, D_in) -> (2d, D_in)
+            kv_bias = w[d:] @ project.bias.float() + b[d:]  # (2d,)
+            dtype = self.queries.dtype
+            self._fold, self._fold_key = (query.to(dtype), kv_weight.to(dtype), kv_bias.to(dtype)), key
+        return self._fold
 
 
 class LatentDenoiser(nn.Module):
@@ -119,8 +149,9 @@ class LatentDenoiser(nn.Module):
             cond = self.text_proj(text.pooled.to(null.dtype))[:, None]  # (B, 1, d)
             if cfg.text_pool_tokens:
                 L = cfg.max_text_tokens
-                words = self.token_proj(text.tokens[:, :L].to(null.dtype))  # (B, L, d)
-                cond = torch.cat([cond, self.token_pool(words, text.mask[:, :L])], dim=1)  # (B, 1 + K, d)
+                words = self.token_pool.pool_projected(text.tokens[:, :L].to(null.dtype), text.mask[:, :L],
+                                                       self.token_proj)  # (B, K, d)
+                cond = torch.cat([cond, words], dim=1)  # (B, 1 + K, d)
         else:
             if actions is None:
                 raise ValueError("an action-conditioned denoiser needs action ids")

@@ -53,6 +53,7 @@ class SkipTransformer(nn.Module):
         self.skip_projections = nn.ModuleList(nn.Linear(2 * config.dim, config.dim) for _ in range(n_side))
         self.norm = nn.LayerNorm(config.dim)
         self._packed: dict = {}  # id(layer) -> prepacked weights; see pack_for_cpu_inference
+        self._packed_projections: list = []  # the skip projections' prepacked (weight, bias), in order
         self._fixed_queries: dict = {}  # key -> the first layer's self-attention of fixed queries (fixed_queries)
         self.register_load_state_dict_post_hook(lambda module, _keys: module._forget_derived())
 
@@ -76,7 +77,7 @@ class SkipTransformer(nn.Module):
         halves a step's time on a CPU at the few tokens a step runs. ``dtype`` (e.g. bfloat16) runs the matrix
         products, and the attention between them, in that precision while layer norms and the residual stream keep
         the module's, much as autocast does. A snapshot: ``train()`` drops it. False where oneDNN is unavailable."""
-        self._packed, self._fixed_queries = {}, {}
+        self._forget_derived()
         if not _packing_available(self):
             return False
         d = self.config.dim
@@ -94,6 +95,7 @@ class SkipTransformer(nn.Module):
                 packed["cross_kv"] = _pack(cross.in_proj_weight[d:], cross.in_proj_bias[d:], dtype)
                 packed["cross_out"] = _pack(cross.out_proj.weight, cross.out_proj.bias, dtype)
             self._packed[id(layer)] = packed
+        self._packed_projections = [_pack(p.weight, p.bias, dtype) for p in self.skip_projections]
         return True
 
     def train(self, mode: bool = True):
@@ -107,7 +109,7 @@ class SkipTransformer(nn.Module):
 
     def _forget_derived(self) -> None:
         """Drop the prepacked weights and cached first-layer queries (new weights, dtype or device)."""
-        self._packed, self._fixed_queries = {}, {}
+        self._packed, self._packed_projections, self._fixed_queries = {}, [], {}
 
     def forward(self, x: torch.Tensor, padding_mask: torch.Tensor | None = None, memory: torch.Tensor | None = None,
                 memory_padding_mask: torch.Tensor | None = None, fixed_queries=None) -> torch.Tensor:
@@ -125,10 +127,22 @@ class SkipTransformer(nn.Module):
             skips.append(x)
         for layer in self.middle_blocks:
             x, first = self._run(layer, x, padding_mask, memory, memory_padding_mask, first), None
-        for layer, project in zip(self.output_blocks, self.skip_projections):
-            x = project(torch.cat([x, skips.pop()], dim=-1))  # (B, S, 2d) -> (B, S, d)
+        for i, layer in enumerate(self.output_blocks):
+            x = self._project(i, torch.cat([x, skips.pop()], dim=-1), padding_mask, memory_padding_mask)
             x = self._run(layer, x, padding_mask, memory, memory_padding_mask)
         return self.norm(x)
+
+    PACKED_PROJECTION_ROWS = 32  # measured: below this many rows the plain product is as fast as the packed one
+
+    def _project(self, i: int, x: torch.Tensor, padding_mask, memory_padding_mask) -> torch.Tensor:
+        """Long skip i's projection (B, S, 2d) -> (B, S, d), on its prepacked weights for long sequences (the VAE
+        decoder's frames); the few tokens of a denoising step keep the plain product."""
+        project = self.skip_projections[i]
+        if not self._packed_projections or x.shape[0] * x.shape[1] < self.PACKED_PROJECTION_ROWS \
+                or not self._plain(padding_mask, memory_padding_mask):
+            return project(x)
+        packed = self._packed_projections[i]
+        return _linear(x, project.weight, project.bias, packed)
 
     def _first_self_attention(self, x: torch.Tensor, key) -> torch.Tensor:
         """x + the first layer's self-attention of x (B, S, d), computed for the first row once per key."""

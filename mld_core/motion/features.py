@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from . import skeleton as sk
-from .quaternion import cross, normalize, qbetween, qinv, qmul, qpositive, qrot, quat_to_cont6d
+from .quaternion import cross, normalize, qbetween, qinv, qmul, qpositive, qrot, quat_to_cont6d, turn_about_y
 
 ROOT_ROT_VEL = slice(0, 1)
 ROOT_LIN_VEL = slice(1, 3)
@@ -278,14 +278,12 @@ def _recover_joints_numpy(f: np.ndarray) -> np.ndarray:
     """_recover_joints in numpy, float64 (a take is many small operations: numpy keeps each one cheap)."""
     half = f[..., 0]  # (..., T)
     angle = np.cumsum(np.concatenate([np.zeros_like(half[..., :1]), half[..., :-1]], axis=-1), axis=-1)
-    zero = np.zeros_like(angle)
-    to_world = qinv(np.stack([np.cos(angle), zero, np.sin(angle), zero], axis=-1))  # (..., T, 4)
     step = np.zeros(f.shape[:-1] + (3,))  # (..., T, 3): frame t-1 -> t in the facing frame of frame t
     step[..., 1:, 0], step[..., 1:, 2] = f[..., :-1, 1], f[..., :-1, 2]
-    xz = np.cumsum(qrot(to_world, step), axis=-2)
+    xz = np.cumsum(turn_about_y(-angle, step), axis=-2)  # the inverse of the root rotation: facing -> world
     root_pos = np.stack([xz[..., 0], f[..., 3], xz[..., 2]], axis=-1)  # (..., T, 3)
     ric = f[..., RIC].reshape(f.shape[:-1] + (21, 3))  # (..., T, 21, 3)
-    world = qrot(to_world[..., None, :], ric)
+    world = turn_about_y(-angle[..., None], ric)
     world[..., 0] += root_pos[..., None, 0]
     world[..., 2] += root_pos[..., None, 2]
     return np.concatenate([root_pos[..., None, :], world], axis=-2)  # (..., T, 22, 3)

@@ -16,7 +16,7 @@ import numpy as np
 
 from mld_core.motion import skeleton as sk
 from mld_core.motion.features import FOOT_CONTACT, RIC, gaussian_filter1d
-from mld_core.motion.quaternion import qinv, qrot
+from mld_core.motion.quaternion import turn_about_y
 
 FOOT_JOINTS = (7, 10, 8, 11)  # the order of the contact channels: left ankle, left toe, right ankle, right toe
 
@@ -47,19 +47,17 @@ def repair_features(features: np.ndarray, config: RepairConfig | None = None) ->
     return out.astype(np.asarray(features).dtype)
 
 
-def _root_quat(features: np.ndarray) -> np.ndarray:
-    """The root rotations (T, 4) of features (T, 263), as recover_root computes them, in numpy (a take's repair is
-    many small operations: numpy keeps each one cheap)."""
-    angle = np.cumsum(np.concatenate([[0.0], features[:-1, 0]]))  # (T,)
-    zero = np.zeros_like(angle)
-    return np.stack([np.cos(angle), zero, np.sin(angle), zero], axis=-1)
+def _root_half_angle(features: np.ndarray) -> np.ndarray:
+    """The half-angles a (T,) of the root rotations (cos a, 0, sin a, 0) of features (T, 263), as recover_root
+    computes them, in numpy (a take's repair is many small operations: numpy keeps each one cheap)."""
+    return np.cumsum(np.concatenate([[0.0], features[:-1, 0]]))  # (T,)
 
 
-def _world_offsets(features: np.ndarray, root_quat: np.ndarray) -> np.ndarray:
+def _world_offsets(features: np.ndarray, half_angle: np.ndarray) -> np.ndarray:
     """Foot joints relative to the root's ground position, in world axes: (T, 4, 3)."""
     ric = features[:, RIC].reshape(len(features), 21, 3)  # (T, 21, 3)
     feet = ric[:, [j - 1 for j in FOOT_JOINTS]]  # (T, 4, 3)
-    return qrot(qinv(root_quat)[:, None, :], feet)
+    return turn_about_y(-half_angle[:, None], feet)
 
 
 def plant_feet(features: np.ndarray, config: RepairConfig | None = None) -> np.ndarray:
@@ -68,11 +66,11 @@ def plant_feet(features: np.ndarray, config: RepairConfig | None = None) -> np.n
     f = np.asarray(features, dtype=np.float64)
     if len(f) < 3:
         return f.copy()
-    root_quat = _root_quat(f)  # (T, 4)
-    offsets = _world_offsets(f, root_quat)  # (T, 4, 3)
+    half_angle = _root_half_angle(f)  # (T,)
+    offsets = _world_offsets(f, half_angle)  # (T, 4, 3)
     vel = np.zeros((len(f) - 1, 3))
     vel[:, 0], vel[:, 2] = f[:-1, 1], f[:-1, 2]
-    model_step = qrot(qinv(root_quat[1:]), vel)[:, [0, 2]]  # (T-1, 2) world displacement t -> t+1
+    model_step = turn_about_y(-half_angle[1:], vel)[:, [0, 2]]  # (T-1, 2) world displacement t -> t+1
 
     foot_step = -(offsets[1:, :, [0, 2]] - offsets[:-1, :, [0, 2]])  # (T-1, 4, 2) root steps that plant each joint
     height = offsets[:, :, 1] - offsets[:, :, 1].min(axis=0)  # (T, 4)
@@ -92,7 +90,7 @@ def plant_feet(features: np.ndarray, config: RepairConfig | None = None) -> np.n
 
     world = np.zeros((len(f) - 1, 3))
     world[:, 0], world[:, 2] = step[:, 0], step[:, 1]
-    local = qrot(root_quat[1:], world)  # back into the next frame's facing frame
+    local = turn_about_y(half_angle[1:], world)  # back into the next frame's facing frame
     out = f.copy()
     out[:-1, 1], out[:-1, 2] = local[:, 0], local[:, 2]
     return out
@@ -178,5 +176,6 @@ def keep_bone_lengths(joints: np.ndarray, lengths: np.ndarray | None = None) -> 
     norm = np.linalg.norm(bones, axis=-1, keepdims=True)  # (T, 21, 1)
     target = np.median(norm[..., 0], axis=0) if lengths is None else np.asarray(lengths, np.float64)[1:]
     dirs = np.where(norm > 1e-9, bones / np.maximum(norm, 1e-9), sk.RAW_OFFSETS[1:])
-    out = j[:, :1] + _CHAINS @ (dirs * target[:, None])  # (22, 21) @ (T, 21, 3) -> (T, 22, 3)
+    bones = (dirs * target[:, None]).transpose(1, 0, 2).reshape(len(target), -1)  # (21, T * 3)
+    out = j[:, :1] + (_CHAINS @ bones).reshape(sk.NUM_JOINTS, len(j), 3).transpose(1, 0, 2)  # (T, 22, 3)
     return out.astype(np.asarray(joints).dtype if np.asarray(joints).dtype.kind == "f" else np.float64)

@@ -18,7 +18,7 @@ from __future__ import annotations
 import copy
 import json
 import shutil
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -60,7 +60,9 @@ class DraftTrainConfig:
     draft_steps: int = 2  # the Draft's default number of steps, written into config.json
     teacher_steps: int = 1  # ... the last of them guided steps of the teacher (config draft.teacher_steps; draft.md)
     fresh_noise: float = 0.0  # share of new noise when re-noising between steps (config draft.fresh_noise)
-    teacher_guidance: float | None = 2.0  # the teacher steps' guidance scale (config draft.teacher_guidance; draft.md)
+    teacher_guidance: float | None = 1.5  # the teacher steps' guidance scale (config draft.teacher_guidance; draft.md)
+    timesteps: list | None = field(default_factory=lambda: [981, 601])  # the Draft's timesteps at draft_steps
+    #   (config draft.timesteps: the teacher step takes over at 601; null: spread evenly; draft.md)
     crops_per_clip: int = 6
     balance_power: float = 0.7
     save_every: int = 250
@@ -103,6 +105,8 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
     base = load_config(teacher_dir)
     if base.denoiser is None or base.denoiser.cond != "text":
         raise ValueError(f"--teacher {teacher_dir} has no text-conditioned denoiser to distil")
+    if cfg.timesteps is not None:  # points of the grid the Draft is distilled on, checked before any work
+        LCMScheduler(base.scheduler, cfg.original_steps).checked_timesteps(cfg.timesteps, cfg.draft_steps)
     prepare_run_dir(out, resume)
     setup_torch(cfg.seed, cfg.threads)
     for name in (LATENT_CACHE, TEXT_CACHE) if cfg.caches_from and not resume else ():
@@ -135,7 +139,7 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
                         original_steps=cfg.original_steps, guidance_min=cfg.guidance_min,
                         guidance_max=cfg.guidance_max, guidance_scale=cfg.default_guidance,
                         teacher_steps=cfg.teacher_steps, fresh_noise=cfg.fresh_noise,
-                        teacher_guidance=cfg.teacher_guidance)
+                        teacher_guidance=cfg.teacher_guidance, timesteps=cfg.timesteps)
     draft.denoiser.guidance_input = True
     student = LatentDenoiser(draft.denoiser)
     student.load_state_dict(teacher.state_dict(), strict=False)  # all but the new guidance MLP
