@@ -246,7 +246,8 @@ class _TrainMode:
 
     def __enter__(self):
         self.saved = [(sub, sub.training) for m in self.modules for sub in m.modules()]
-        self.packed = [(sub, sub._packed) for sub, _ in self.saved if isinstance(getattr(sub, "_packed", None), dict)]
+        self.packed = [(sub, sub._packed, getattr(sub, "_packed_projections", [])) for sub, _ in self.saved
+                       if isinstance(getattr(sub, "_packed", None), dict)]
         # the text encoder's layers keep prepacked weights too (oneDNN ops the counter does not see): plain ops here
         self.text_packed = [(sub, sub.packed) for sub, _ in self.saved if isinstance(getattr(sub, "packed", None), dict)]
         for sub, _ in self.text_packed:
@@ -257,8 +258,8 @@ class _TrainMode:
     def __exit__(self, *exc):
         for sub, mode in self.saved:
             sub.training = mode
-        for sub, packed in self.packed:  # train() drops prepacked inference weights; the weights did not change
-            sub._packed = packed
+        for sub, packed, projections in self.packed:  # train() drops prepacked weights; they did not change
+            sub._packed, sub._packed_projections = packed, projections
         for sub, packed in self.text_packed:
             sub.packed = packed
 
@@ -273,12 +274,13 @@ def mld_flops(pipe, prompt: str, frames: int, steps: int, guidance_scale: float 
     scale = {"guidance": torch.full((1,), s)} if draft else {}
     n, d = pipe.config.vae.latent_tokens, pipe.config.vae.latent_dim
     lengths = torch.tensor([frames])
-    with _TrainMode(den, pipe.vae, pipe.text_encoder):
+    encoder = pipe.draft_text_encoder if draft and pipe.draft_text_encoder is not None else pipe.text_encoder
+    with _TrainMode(den, pipe.vae, encoder):
         holder = {}
 
         def condition():
             if den.config.cond == "text":
-                text = pipe.text_encoder([prompt])
+                text = encoder([prompt])
                 holder["cond"] = den.condition_tokens(1, text=text)
             elif den.config.cond == "action":
                 holder["cond"] = den.condition_tokens(1, actions=torch.zeros(1, dtype=torch.long))

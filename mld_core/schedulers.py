@@ -10,6 +10,8 @@ Symbols: alpha_bar_t = prod_{s<=t} (1 - beta_s);  x_t = sqrt(alpha_bar_t) x_0 + 
 
 from __future__ import annotations
 
+import numbers
+
 from dataclasses import asdict, dataclass
 
 import torch
@@ -156,12 +158,13 @@ class LCMScheduler(_Schedule):
 
     def checked_timesteps(self, timesteps, count: int) -> torch.Tensor:
         """``timesteps`` as a tensor when they are ``count`` distinct points of the grid in descending order."""
-        grid = set(self.grid.tolist())
+        points = self.grid.tolist()
         values = list(timesteps) if isinstance(timesteps, (list, tuple)) else None
-        if values is None or len(values) != count or any(isinstance(t, bool) or t not in grid for t in values) \
+        whole = values is not None and all(isinstance(t, numbers.Integral) and not isinstance(t, bool) for t in values)
+        if not whole or len(values) != count or any(int(t) not in points for t in values) \
                 or any(a <= b for a, b in zip(values, values[1:])):
-            raise ValueError(f"the Draft's timesteps must be {count} descending points of its grid "
-                             f"{self.grid[0].item()}, {self.grid[1].item()}, ..., {self.grid[-1].item()}; "
+            shown = ", ".join(map(str, points)) if len(points) <= 3 else f"{points[0]}, {points[1]}, ..., {points[-1]}"
+            raise ValueError(f"the Draft's timesteps must be {count} descending points of its grid {shown}; "
                              f"got {timesteps!r}")
         return torch.tensor([int(t) for t in values])
 

@@ -171,7 +171,8 @@ def test_a_bad_draft_section_is_a_checkpoint_error(tmp_path):
                               ("teacher_guidance", "high", "draft.teacher_guidance"),
                               ("timesteps", [981], "draft.timesteps"), ("timesteps", [481, 981], "draft.timesteps"),
                               ("timesteps", [981, 480], "draft.timesteps"), ("timesteps", "late", "draft.timesteps"),
-                              ("timesteps", [981, True], "draft.timesteps")):
+                              ("timesteps", [981, True], "draft.timesteps"), ("timesteps", [[981], 601],
+                              "draft.timesteps"), ("timesteps", [981.0, 601], "draft.timesteps")):
         (folder / "config.json").write_text(json.dumps({**data, "draft": {**data["draft"], "num_inference_steps": 2,
                                                                            key: value}}))
         with pytest.raises(CheckpointError, match=words):
@@ -326,6 +327,17 @@ def _tiny_model_with_a_teacher_step(folder):
     return folder, data
 
 
+def test_bad_draft_timesteps_say_what_the_grid_is():
+    from mld_core.schedulers import LCMScheduler, SchedulerConfig
+
+    one_point = LCMScheduler(SchedulerConfig(), original_steps=1)
+    with pytest.raises(ValueError, match=r"1 descending points of its grid 1; got \[5\]"):
+        one_point.checked_timesteps([5], 1)
+    with pytest.raises(ValueError, match=r"2 descending points of its grid 1, 21, \.\.\., 981"):
+        LCMScheduler(SchedulerConfig()).checked_timesteps([981, 601.5], 2)
+    assert LCMScheduler(SchedulerConfig()).checked_timesteps((981, np.int64(601)), 2).tolist() == [981, 601]
+
+
 def test_the_drafts_configured_timesteps_set_where_its_teacher_step_takes_over(tmp_path):
     from mld_core.pipeline import MLDPipeline
 
@@ -442,6 +454,22 @@ def test_pooling_projected_tokens_folds_the_projection_and_follows_new_weights()
     grads = pool.pool_projected(tokens, valid, project)  # with gradients: the plain path, which trains
     grads.sum().backward()
     assert project.weight.grad is not None and pool.queries.grad is not None
+    with torch.no_grad():
+        project.weight = nn.Parameter(project.weight * 0.5)  # a new tensor, perhaps at a freed address
+        replaced = pool.pool_projected(tokens, valid, project)
+        with torch.autocast("cpu", dtype=torch.bfloat16):  # a fold made under autocast ...
+            pool._fold_key = None
+            pool.pool_projected(tokens, valid, project)
+        after_autocast = pool.pool_projected(tokens, valid, project)  # ... is the weights' own precision
+    with torch.enable_grad():
+        torch.testing.assert_close(replaced, pool(project(tokens), valid), atol=1e-5, rtol=0)
+        torch.testing.assert_close(after_autocast, pool(project(tokens), valid), atol=1e-5, rtol=0)
+    with torch.inference_mode():  # a model built in inference mode: its weights keep no version counter
+        frozen_pool, frozen_project = AttentionPool(32, 2, 4).eval(), nn.Linear(48, 32)
+        frozen_pool.load_state_dict(pool.state_dict())
+        frozen_project.load_state_dict(project.state_dict())
+        torch.testing.assert_close(frozen_pool.pool_projected(tokens, valid, frozen_project), replaced, atol=1e-5,
+                                   rtol=0)
 
 
 def test_packed_skip_projections_serve_long_sequences_only():
@@ -456,9 +484,9 @@ def test_packed_skip_projections_serve_long_sequences_only():
     real = stack.skip_projections[0].forward
     stack.skip_projections[0].forward = lambda x: calls.append(x.shape[1]) or real(x)
     with torch.no_grad():
-        for frames in (8, 40):
-            stack(torch.randn(1, frames, 32), memory=memory)
-    assert calls == [8]  # 40 frames took the packed product
+        for batch, frames in ((1, 8), (5, 8), (1, 31), (1, 32)):
+            stack(torch.randn(batch, frames, 32), memory=memory.expand(batch, -1, -1))
+    assert calls == [8, 8, 31]  # 32 frames took the packed product; a batch of short sequences never does
     x = torch.randn(1, 40, 32)
     with torch.no_grad():
         packed = stack(x, memory=memory)

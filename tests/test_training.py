@@ -189,6 +189,14 @@ def test_draft_distillation_trains_resumes_and_installs(folder, tmp_path):
     assert d.timesteps == [981, 601] and run_pipe("a person walks", 1.5, draft=True).joints.shape[1] == 30
     from mld_core.training.draft import DraftTrainConfig
 
+    from mld_core.schedulers import LCMScheduler
+    from mld_core.training.draft import draft_timesteps
+
+    grid = LCMScheduler(run_pipe.config.scheduler, 50)  # by default only a 2-step Draft with a teacher step has its own
+    assert draft_timesteps(DraftTrainConfig(), grid) == [981, 601]
+    assert draft_timesteps(DraftTrainConfig(draft_steps=3), grid) is None
+    assert draft_timesteps(DraftTrainConfig(teacher_steps=0), grid) is None
+    assert draft_timesteps(DraftTrainConfig(original_steps=2), LCMScheduler(run_pipe.config.scheduler, 2)) == [501, 1]
     checked = DraftTrainConfig(teacher_steps="1", draft_steps="2", fresh_noise="0.5", batch_size="16")
     assert (checked.teacher_steps, checked.draft_steps, checked.fresh_noise, checked.batch_size) == (1, 2, 0.5, 16)
     installed = tmp_path / "installed"

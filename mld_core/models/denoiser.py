@@ -90,20 +90,27 @@ class AttentionPool(nn.Module):
         return self.norm(out + self.queries)
 
     def _folded(self, project: nn.Linear) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(projected queries (K, d), folded key/value weight (2d, D_in) and bias (2d,)), kept while the weights
-        they come from are unchanged (same storage, no in-place update)."""
+        """(projected queries (K, d), folded key/value weight (2d, D_in) and bias (2d,)), kept while the tensors
+        they come from are the same objects, not updated in place since (inference tensors keep no version
+        counter: they are folded on every call)."""
         attn = self.attn
         sources = (self.queries, attn.in_proj_weight, attn.in_proj_bias, project.weight, project.bias)
-        key = tuple((t.data_ptr(), t._version, t.dtype) for t in sources)
-        if self._fold_key != key:
-            d = self.queries.shape[-1]
-            w, b = attn.in_proj_weight.float(), attn.in_proj_bias.float()
+        if any(t.is_inference() for t in sources):
+            return self._fold_now(project)
+        key = [(t, t._version) for t in sources]  # the tensors themselves: a freed address cannot be mistaken
+        if self._fold_key is None or any(a is not b or u != v for (a, u), (b, v) in zip(self._fold_key, key)):
+            self._fold, self._fold_key = self._fold_now(project), key
+        return self._fold
+
+    def _fold_now(self, project: nn.Linear) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        d = self.queries.shape[-1]
+        with torch.autocast(self.queries.device.type, enabled=False):  # the weights' own precision, always
+            w, b = self.attn.in_proj_weight.float(), self.attn.in_proj_bias.float()
             query = F.linear(self.queries.float(), w[:d], b[:d])  # (K, d)
             kv_weight = w[d:] @ project.weight.float()  # (2d, d) @ (d, D_in) -> (2d, D_in)
             kv_bias = w[d:] @ project.bias.float() + b[d:]  # (2d,)
-            dtype = self.queries.dtype
-            self._fold, self._fold_key = (query.to(dtype), kv_weight.to(dtype), kv_bias.to(dtype)), key
-        return self._fold
+        dtype = self.queries.dtype
+        return query.to(dtype), kv_weight.to(dtype), kv_bias.to(dtype)
 
 
 class LatentDenoiser(nn.Module):

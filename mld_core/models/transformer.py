@@ -132,13 +132,13 @@ class SkipTransformer(nn.Module):
             x = self._run(layer, x, padding_mask, memory, memory_padding_mask)
         return self.norm(x)
 
-    PACKED_PROJECTION_ROWS = 32  # measured: below this many rows the plain product is as fast as the packed one
+    PACKED_PROJECTION_TOKENS = 32  # measured: at fewer tokens the plain product is as fast as the packed one
 
     def _project(self, i: int, x: torch.Tensor, padding_mask, memory_padding_mask) -> torch.Tensor:
         """Long skip i's projection (B, S, 2d) -> (B, S, d), on its prepacked weights for long sequences (the VAE
-        decoder's frames); the few tokens of a denoising step keep the plain product."""
+        decoder's frames); the few tokens of a denoising step keep the plain product at any batch size."""
         project = self.skip_projections[i]
-        if not self._packed_projections or x.shape[0] * x.shape[1] < self.PACKED_PROJECTION_ROWS \
+        if not self._packed_projections or x.shape[1] < self.PACKED_PROJECTION_TOKENS \
                 or not self._plain(padding_mask, memory_padding_mask):
             return project(x)
         packed = self._packed_projections[i]
