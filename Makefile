@@ -9,7 +9,7 @@ SECONDS_ ?= 4
 SEED ?= 0
 OUT ?= out
 
-.PHONY: setup test demo addon clean
+.PHONY: setup test demo addon draft clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -28,6 +28,14 @@ demo: setup
 
 addon: setup
 	$(BIN)/python build_addon.py
+
+# Re-distil the Draft of the bundled model after its denoiser changed (docs/draft.md; about 2.5 h on one core):
+#   make draft DATA=data/bandai
+DATA ?= data/bandai
+RUNS ?= runs
+draft: setup
+	$(BIN)/python -m mld_core train draft --data $(DATA) --out $(RUNS)/draft --threads 1 --bf16 --steps 16000 --minutes 90 --install
+	$(BIN)/python -m mld_core train draft-text --data $(DATA) --out $(RUNS)/draft_text --threads 1 --minutes 65 --install
 
 clean:
 	rm -rf $(VENV) dist build out
