@@ -9,15 +9,20 @@ from mld_core.cli import UsageError
 from mld_core.inputs import check_output_folder
 
 
-def _common(p) -> None:
-    p.add_argument("--data", required=True, help="a HumanML3D-format folder (HumanML3D, KIT-ML, or `data prepare` output)")
-    p.add_argument("--out", required=True, help="the run folder to write (a complete model folder when done)")
+def _run_options(p) -> None:
+    """Resuming, seed, threads, budget and learning rate: the options every training stage has."""
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its train_state.pt")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
     p.add_argument("--steps", type=int, default=None, help="stop after this many optimiser steps")
     p.add_argument("--minutes", type=float, default=None, help="stop after this much wall time")
     p.add_argument("--lr", type=float, default=None)
+
+
+def _common(p) -> None:
+    p.add_argument("--data", required=True, help="a HumanML3D-format folder (HumanML3D, KIT-ML, or `data prepare` output)")
+    p.add_argument("--out", required=True, help="the run folder to write (a complete model folder when done)")
+    _run_options(p)
     p.add_argument("--layers", type=int, default=None, help="transformer layers (odd with skips)")
     p.add_argument("--no-skip", action="store_true", help="turn the long skip connections off")
     p.add_argument("--bf16", action="store_true", help="bfloat16 autocast (about 2x faster on CPUs with AVX512-BF16 or AMX)")
@@ -205,12 +210,7 @@ def _run_distillation(args, config_class, train, install, what: str, extra: dict
 
 def _stage_options(p, config_name: str) -> None:
     """The options train draft and train draft-text share."""
-    p.add_argument("--resume", action="store_true", help="continue the run in --out from its train_state.pt")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
-    p.add_argument("--steps", type=int, default=None, help="stop after this many optimiser steps")
-    p.add_argument("--minutes", type=float, default=None, help="stop after this much wall time")
-    p.add_argument("--lr", type=float, default=None)
+    _run_options(p)
     p.add_argument("--config", type=Path, default=None, help=f"JSON overrides of {config_name}")
 
 
