@@ -278,8 +278,9 @@ def build_requests(clips: dict, modes: list[str], lengths: list, seeds: int, max
 
 
 def generate(pipe, reqs: list[dict], batch: int, steps: int | None, guidance: float | None, fps: float,
-             tallies: dict, repair: bool = True) -> float:
-    """Run the requests through the pipeline in batches (grouped by seed/variants) and tally the results."""
+             tallies: dict, repair: bool = True, per_prompt: dict | None = None) -> float:
+    """Run the requests through the pipeline in batches (grouped by seed/variants) and tally the results, per
+    (source, length) and content; paraphrases also per (length, content, prompt) into ``per_prompt``."""
     from tqdm import tqdm
 
     cond = pipe.denoiser.config.cond if pipe.denoiser is not None else "none"
@@ -303,6 +304,8 @@ def generate(pipe, reqs: list[dict], batch: int, steps: int | None, guidance: fl
                     r = chunk[row // variants]
                     joints = out.joints[row, : int(out.lengths[row])]
                     tallies[(r["source"], r["length"])][r["content"]].add(joints, r["content"], fps)
+                    if per_prompt is not None and r["source"] == "paraphrase":
+                        per_prompt[(r["length"], r["content"], r["prompt"])].add(joints, r["content"], fps)
                 bar.update(len(out.lengths))
     return time.perf_counter() - t0
 
@@ -409,6 +412,14 @@ def print_table(report: dict, contents: list[str]) -> None:
           "(mld_core.eval.quality); * = no test clip, clips from train/val.")
 
 
+def print_prompt_table(rows: list[dict]) -> None:
+    """One line per paraphrase: which wordings the model follows (a content's pass rate hides them)."""
+    print(f"\n{'content':22s} {'length':>6s} {'n':>4s} {'pass':>4s} {'side':>4s}  paraphrase")
+    for r in rows:
+        print(f"{r['content']:22s} {r['length']:>6s} {r['n']:4d} {_fmt(r['pass_rate'])} {_fmt(r['side_accuracy'])}  "
+              f"{r['prompt']}")
+
+
 def _write_json(path: Path, data: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
@@ -439,6 +450,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--real-only", action="store_true", help="score only the real clips (no model)")
     ap.add_argument("--vae-recon", action="store_true",
                     help="also score VAE reconstructions at the clip's own length and at --seconds")
+    ap.add_argument("--per-prompt", action="store_true", help="also print the pass rate of each paraphrase")
     ap.add_argument("--no-repair", action="store_true", help="generate without the model's repairs (planted feet, "
                     "one skeleton): the ablation")
     args = ap.parse_args(argv)
@@ -495,6 +507,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"side_accuracy.py: {args.model} holds only a VAE: use --vae-recon (or --real-only)", file=sys.stderr)
             return 2
         tallies = defaultdict(lambda: defaultdict(Tally))
+        per_prompt = defaultdict(Tally)
         seconds = 0.0
         if args.vae_recon:
             recon_lengths = list(dict.fromkeys(["clip", *lengths]))
@@ -505,7 +518,8 @@ def main(argv: list[str] | None = None) -> int:
                 modes = ["captions"]  # the prompt text is not used: one "action" row per clip and seed
             reqs = build_requests(clips, modes, lengths, args.seeds, args.max_clips, pipe.min_seconds,
                                   pipe.max_seconds)
-            seconds += generate(pipe, reqs, args.batch, args.steps, args.guidance, fps, tallies, not args.no_repair)
+            seconds += generate(pipe, reqs, args.batch, args.steps, args.guidance, fps, tallies, not args.no_repair,
+                                per_prompt)
         n = sum(t.n for per in tallies.values() for t in per.values())
         print(f"generated and scored {n} motions in {seconds:.1f} s ({seconds / max(n, 1):.3f} s each)",
               file=sys.stderr)
@@ -514,11 +528,19 @@ def main(argv: list[str] | None = None) -> int:
                    f"{'clip' if length == 'clip' else f'{length:g}s'}"
             report["generated"][name] = {"contents": {c: t.as_dict() for c, t in per.items()},
                                          "overall": summarise(per, contents)}
+        order = {c: k for k, c in enumerate(contents)}
+        report["paraphrases"] = [
+            {"content": content, "length": "clip" if length == "clip" else f"{length:g}s", "prompt": prompt,
+             **t.as_dict()}
+            for (length, content, prompt), t in sorted(per_prompt.items(),
+                                                       key=lambda kv: (order.get(kv[0][1], 0), str(kv[0][0])))]
         report.update(model=str(args.model or "default"), model_id=pipe.model_id, seeds=args.seeds,
                       repair=not args.no_repair,
                       steps=args.steps, guidance=args.guidance, max_clips=args.max_clips, generation_s=seconds)
 
     print_table(report, contents)
+    if args.per_prompt and report.get("paraphrases"):
+        print_prompt_table(report["paraphrases"])
     if args.json is not None:
         _write_json(args.json, report)
         print(f"wrote {args.json}", file=sys.stderr)

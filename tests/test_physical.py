@@ -387,8 +387,15 @@ def test_side_accuracy_script_end_to_end(bandai_clips, tmp_path, request, capsys
     out2 = tmp_path / "gen.json"
     assert script.main(["--data", str(root), "--model", str(model), "--contents", "wave-right-hand,walk-turn-left",
                         "--seeds", "2", "--seconds", "2", "--clip-length", "--steps", "2", "--vae-recon",
-                        "--json", str(out2)]) == 0
+                        "--per-prompt", "--json", str(out2)]) == 0
     rep = json.loads(out2.read_text())
+    # per paraphrase: 4 per content and length, each 2 seeds, adding up to the content's row
+    rows = [r for r in rep["paraphrases"] if r["content"] == "walk-turn-left" and r["length"] == "clip"]
+    assert len(rows) == 4 and {r["n"] for r in rows} == {2}
+    assert sum(r["pass_rate"] * r["n"] for r in rows) == pytest.approx(
+        rep["generated"]["paraphrase@clip"]["contents"]["walk-turn-left"]["pass_rate"] * 8)
+    printed = capsys.readouterr().out
+    assert "changes direction to their left" in printed
     assert set(rep["generated"]) == {"captions@2s", "captions@clip", "paraphrase@2s", "paraphrase@clip",
                                      "vae-recon@2s", "vae-recon@clip"}
     assert rep["generated"]["vae-recon@clip"]["contents"]["walk-turn-left"]["n"] == 1
@@ -398,7 +405,7 @@ def test_side_accuracy_script_end_to_end(bandai_clips, tmp_path, request, capsys
     for mode in rep["generated"].values():
         for c in mode["contents"].values():
             assert 0.0 <= c["pass_rate"] <= 1.0 and c["side_accuracy"] + c["opposite_side"] <= 1.0
-    assert "side" in capsys.readouterr().out
+    assert "side" in printed
 
 
 def test_side_of_a_wave_is_the_waving_hand_else_the_raised_one(rest):

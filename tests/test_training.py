@@ -213,6 +213,19 @@ def test_draft_distillation_trains_resumes_and_installs(folder, tmp_path):
     assert main(["train", "draft", "--data", str(folder), "--teacher", str(tmp_path / "vae"), "--out",
                  str(tmp_path / "bad"), "--steps", "1"]) == 2  # a VAE-only folder has nothing to distil
     assert not (tmp_path / "bad").exists()
+    # re-distilling after the teacher changed: the student starts from a model folder's Draft
+    from safetensors.torch import load_file
+
+    cfg_init = tmp_path / "init.json"
+    cfg_init.write_text(json.dumps({"batch_size": 16, "save_every": 1, "crops_per_clip": 2, "init": str(run)}))
+    assert main(["train", "draft", "--data", str(folder), "--teacher", str(teacher), "--out", str(tmp_path / "re"),
+                 "--threads", "1", "--config", str(cfg_init), "--lr", "1e-12", "--steps", "1"]) == 0
+    start, again = load_file(str(run / "draft.safetensors")), load_file(str(tmp_path / "re" / "draft.safetensors"))
+    assert max(float((start[k] - again[k]).abs().max()) for k in start) < 1e-6
+    cfg_init.write_text(json.dumps({"init": str(teacher)}))
+    assert main(["train", "draft", "--data", str(folder), "--teacher", str(teacher), "--out", str(tmp_path / "re2"),
+                 "--config", str(cfg_init), "--steps", "1"]) == 2  # the teacher's folder has no Draft
+    assert not (tmp_path / "re2").exists()
 
 
 @pytest.mark.parametrize("flags, config, words", [
@@ -327,3 +340,56 @@ def test_text_variants_keep_splice_drop_or_swap_sides():
         DraftTextTrainConfig(splice_share=0.5, drop_share=0.3, swap_share=0.3)
     with pytest.raises(ValueError, match="composed_share \\+ random_share must be at most 1"):
         DraftTextTrainConfig(composed_share=0.8, random_share=0.3)
+
+
+def test_root_weight_scales_only_the_root_channels_and_trains(folder, tmp_path, capsys):
+    from mld_core.models.vae import MotionVAE, VAEConfig
+    from mld_core.training.vae import VAETrainConfig, feature_weights, selection_metric
+
+    assert feature_weights(263, 1.0) is None  # the default loss is the plain mean
+    weights = feature_weights(263, 30.0)
+    assert weights[:4].tolist() == [30.0] * 4 and weights[4:].eq(1.0).all()
+    with pytest.raises(ValueError, match="263-d"):
+        feature_weights(12, 30.0)
+    torch.manual_seed(0)
+    vae = MotionVAE(VAEConfig(**TINY_VAE["vae"])).eval()
+    x, lengths = torch.randn(2, 30, 263), torch.tensor([30, 24])
+    with torch.no_grad():
+        torch.manual_seed(1)
+        plain, _, recon = vae.loss(x, lengths, return_recon=True)
+        torch.manual_seed(1)
+        weighted, _ = vae.loss(x, lengths, feature_weights=weights)
+    err = ((recon - x) ** 2)[~(torch.arange(30)[None] >= lengths[:, None])]  # (valid frames, F)
+    assert float(weighted - plain) == pytest.approx(float(29.0 * err[:, :4].sum(-1).mean() / 263), rel=1e-4)
+    # the best checkpoint: root-relative by default, or root-relative + global
+    record = {"val_mpjpe_mm": 30.0, "val_global_mpjpe_mm": 150.0}
+    assert selection_metric(record, "mpjpe", 5) == 30.0 and selection_metric(record, "mpjpe_sum", 5) == 180.0
+    assert selection_metric({}, "mpjpe_sum", 5) == -5
+    with pytest.raises(ValueError, match="select_by"):
+        VAETrainConfig(select_by="fid")
+    cfg = tmp_path / "vae.json"
+    cfg.write_text(json.dumps({**TINY_VAE, "root_weight": 20.0, "select_by": "mpjpe_sum"}))
+    run = tmp_path / "root"
+    assert main(["train", "vae", "--data", str(folder), "--out", str(run), "--steps", "10", "--threads", "1",
+                 "--config", str(cfg)]) == 0
+    saved = json.loads((run / "config.json").read_text())["provenance"]
+    assert saved["vae_training"]["root_weight"] == 20.0 and saved["vae_val_global_mpjpe_mm"] > 0
+    cfg.write_text(json.dumps({**TINY_VAE, "root_weight": 0}))
+    capsys.readouterr()
+    assert main(["train", "vae", "--data", str(folder), "--out", str(tmp_path / "bad"), "--steps", "1",
+                 "--config", str(cfg)]) == 2
+    assert "root_weight must be positive" in capsys.readouterr().err
+
+
+def test_reworded_captions_add_versions_in_other_words_and_keep_the_originals():
+    from mld_core.training.denoiser import Unit, with_reworded_captions
+
+    units = [Unit(features=np.zeros((40, 263), np.float32), label="walk-turn-left",
+                  captions=["a person walks forward and turns left.", "someone runs."])]
+    assert with_reworded_captions(units, 0, seed=0) == [units[0].captions]  # off: the captions as they are
+    texts = with_reworded_captions(units, 3, seed=0)[0]
+    assert texts[:2] == units[0].captions and 2 < len(texts) <= 8 and len(set(texts)) == len(texts)
+    # other subjects and verbs, never another side
+    assert all("left" in t or t.split()[-1] in ("runs.", "jogs.", "sprints.", "dashes.") for t in texts), texts
+    assert any(not t.startswith(("a person", "someone")) or "walks" not in t and "runs" not in t for t in texts)
+    assert texts == with_reworded_captions(units, 3, seed=0)[0]  # seeded

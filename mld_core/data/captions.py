@@ -33,6 +33,8 @@ import hashlib
 import random
 import re
 
+import numpy as np
+
 __all__ = [
     "CONTENTS",
     "STYLES",
@@ -493,3 +495,42 @@ def caption_line(text: str, start: float = 0.0, end: float = 0.0) -> str:
     """One line of a HumanML3D ``texts/ID.txt`` file: ``caption#tokens#start#end``."""
     clean = " ".join(text.replace("#", " ").split())
     return f"{clean}#{' '.join(tokenize(clean))}#{start:.1f}#{end:.1f}"
+
+
+# ----------------------------------------------------------------------------------------------------
+# rewording: captions as users word their prompts (training augmentation)
+# ----------------------------------------------------------------------------------------------------
+
+SUBJECTS = ("someone", "a person", "a man", "a woman", "the person", "the man", "the woman", "he", "she",
+            "an old man", "an old woman", "a child", "a girl", "a boy", "the character", "a dancer", "a soldier",
+            "a tired person", "a happy person", "the figure", "my character", "a guy", "the lady", "an athlete")
+CAPTION_SUBJECTS = ("a person", "the person", "someone", "a man", "the man", "a woman", "the woman", "a human",
+                    "person", "the figure")
+SYNONYMS = {"walks": ("strolls", "paces", "moves", "goes"), "runs": ("jogs", "sprints", "dashes"),
+            "raises": ("lifts", "puts up", "brings up"), "lowers": ("brings down", "drops", "puts down"),
+            "waves": ("shakes", "swings", "moves"), "jumps": ("hops", "leaps", "takes a jump"),
+            "bows": ("bends forward", "takes a bow"), "forward": ("ahead", "straight ahead", "to the front"),
+            "backward": ("back", "backwards", "to the back"), "quickly": ("fast", "rapidly", "in a hurry"),
+            "slowly": ("gently", "calmly", "at a slow pace"), "turns": ("rotates", "spins", "changes direction"),
+            "kicks": ("kicks out", "does a kick"), "hand": ("arm",), "arm": ("hand",), "steps": ("walks", "moves"),
+            "then": ("and then", "after that", "before that"), "his": ("their", "her"), "their": ("his", "her"),
+            "energetically": ("with energy", "vigorously"), "tired": ("exhausted", "weary"),
+            "happily": ("cheerfully", "with joy"), "angrily": ("furiously", "in anger")}
+
+
+def reworded(caption: str, rng: np.random.Generator) -> str:
+    """A caption in other words: another subject (``SUBJECTS``) and, for about half the words that have one, a
+    synonym, as users word their prompts."""
+    text = caption
+    for subject in CAPTION_SUBJECTS:
+        if text.lower().startswith(subject + " "):
+            text = SUBJECTS[int(rng.integers(len(SUBJECTS)))] + text[len(subject):]
+            break
+    words = []
+    for word in text.split():
+        core = word.rstrip(".,;!?")
+        options = SYNONYMS.get(core.lower())
+        if options and rng.random() < 0.5:
+            word = options[int(rng.integers(len(options)))] + word[len(core):]
+        words.append(word)
+    return " ".join(words)

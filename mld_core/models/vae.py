@@ -89,13 +89,18 @@ class MotionVAE(nn.Module):
         z = mu + torch.randn_like(mu) * (0.5 * logvar).exp() if sample else mu
         return self.decode(z, lengths, max_len=x.shape[1]), mu, logvar
 
-    def loss(self, x: torch.Tensor, lengths: torch.Tensor, return_recon: bool = False):
+    def loss(self, x: torch.Tensor, lengths: torch.Tensor, return_recon: bool = False,
+             feature_weights: torch.Tensor | None = None):
         """MSE on valid frames of normalised features + kl_weight * KL(q(z|x) || N(0, I)): (loss, parts), and the
-        reconstruction (B, T, F) too with ``return_recon``."""
+        reconstruction (B, T, F) too with ``return_recon``. ``feature_weights`` (F,) weight each feature's squared
+        error (the mean over features stays the reduction)."""
         recon, mu, logvar = self(x, lengths)
         recon, mu, logvar = recon.float(), mu.float(), logvar.float()  # the loss in fp32 under autocast too
         valid = ~padding_mask(lengths, x.shape[1])  # (B, T)
-        mse = ((recon - x) ** 2).mean(-1)[valid].mean()
+        err = (recon - x) ** 2  # (B, T, F)
+        if feature_weights is not None:
+            err = err * feature_weights
+        mse = err.mean(-1)[valid].mean()
         kl = (-0.5 * (1 + logvar - mu**2 - logvar.exp())).sum(-1).mean()
         loss, parts = mse + self.config.kl_weight * kl, {"mse": mse.item(), "kl": kl.item()}
         return (loss, parts, recon) if return_recon else (loss, parts)

@@ -23,6 +23,7 @@ from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
 from mld_core.checkpoint import load_config, load_weights, save_json, save_weights
+from mld_core.data.captions import reworded
 from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import DDPMScheduler
@@ -55,6 +56,7 @@ class DenoiserTrainConfig:
     bf16: bool = False  # bfloat16 autocast for forward/backward (fp32 weights, optimiser and EMA)
     text_encoder: dict = field(default_factory=lambda: {"kind": "minilm", "path": None})
     init: str | None = None  # a model folder to continue from (fine-tuning): its denoiser and latent normalisation
+    reworded_captions: int = 0  # extra versions of each caption in other words (subjects, synonyms) to train on
     denoiser: DenoiserConfig = field(default_factory=DenoiserConfig)
 
     def __post_init__(self):
@@ -126,6 +128,19 @@ def encode_latents(vae: MotionVAE, units: list[Unit], mean, std, crops: int, min
 
 
 @torch.no_grad()
+def with_reworded_captions(units: list, per_caption: int, seed: int) -> list[list[str]]:
+    """Each unit's captions, followed by ``per_caption`` rewordings of each (``mld_core.data.captions.reworded``;
+    duplicates dropped): the texts a unit trains on."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for unit in units:
+        texts = list(unit.captions)
+        for caption in unit.captions:
+            texts += [reworded(caption, rng) for _ in range(per_caption)]
+        out.append(list(dict.fromkeys(texts)))
+    return out
+
+
 def embed_captions(encoder, captions: list[str], max_tokens: int, batch: int = 64) -> dict:
     pooled, tokens, mask = [], [], []
     for k in tqdm(range(0, len(captions), batch), desc="encoding captions", unit="batch", dynamic_ncols=True):
@@ -196,9 +211,10 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     if init is not None:  # the denoiser being continued learned latents normalised this way
         latent_mean, latent_scale = init.latent_mean, init.latent_scale
     z0_all = (mu - latent_mean) * latent_scale  # (N, n, d)
-    captions = sorted({c for u in units for c in u.captions})
+    texts_of_unit = with_reworded_captions(units, cfg.reworded_captions, cfg.seed)
+    captions = sorted({c for texts in texts_of_unit for c in texts})
     caption_index = {c: i for i, c in enumerate(captions)}
-    unit_captions = [np.array([caption_index[c] for c in u.captions]) for u in units]
+    unit_captions = [np.array([caption_index[c] for c in texts]) for texts in texts_of_unit]
     text = None
     if cfg.cond == "text":
         from mld_core.models.text_encoder import TextEmbedding, load_text_encoder

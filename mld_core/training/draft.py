@@ -69,6 +69,7 @@ class DraftTrainConfig:
     save_every: int = 250
     bf16: bool = False
     caches_from: str | None = None  # a denoiser run of the same VAE and data: reuse its latent and caption caches
+    init: str | None = None  # a model folder whose Draft the student starts from (the teacher fine-tuned since)
 
     def __post_init__(self):
         """Every setting checked before any work (a bad one would train nothing, or a Draft that cannot load), and
@@ -107,6 +108,18 @@ def draft_timesteps(cfg: DraftTrainConfig, scheduler: LCMScheduler) -> list | No
     return None
 
 
+def _starting_draft(init: str, base) -> Path:
+    """The Draft weights of model folder ``init``, checked to fit a Draft of the teacher ``base``."""
+    init_cfg = load_config(Path(init))
+    weights = Path(init) / DRAFT_WEIGHTS
+    if init_cfg.draft is None or not weights.is_file():
+        raise ValueError(f"init {init} has no Draft to start from")
+    mine = {**init_cfg.draft.denoiser.to_dict(), "guidance_input": False}
+    if mine != base.denoiser.to_dict():
+        raise ValueError(f"init {init}: its Draft's denoiser differs from the teacher's (another architecture)")
+    return weights
+
+
 def huber(diff: torch.Tensor, c: float) -> torch.Tensor:
     """Pseudo-Huber loss per element: sqrt(d^2 + c^2) - c."""
     return (diff.float() ** 2 + c**2).sqrt() - c
@@ -121,6 +134,7 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
     if base.denoiser is None or base.denoiser.cond != "text":
         raise ValueError(f"--teacher {teacher_dir} has no text-conditioned denoiser to distil")
     timesteps = draft_timesteps(cfg, LCMScheduler(base.scheduler, cfg.original_steps))  # checked before any work
+    start = _starting_draft(cfg.init, base) if cfg.init and not resume else None
     prepare_run_dir(out, resume)
     setup_torch(cfg.seed, cfg.threads)
     for name in (LATENT_CACHE, TEXT_CACHE) if cfg.caches_from and not resume else ():
@@ -157,6 +171,8 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
     draft.denoiser.guidance_input = True
     student = LatentDenoiser(draft.denoiser)
     student.load_state_dict(teacher.state_dict(), strict=False)  # all but the new guidance MLP
+    if start is not None:
+        load_weights(start, student)
     target = copy.deepcopy(student).eval().requires_grad_(False)  # goals without dropout
     opt = torch.optim.AdamW(student.parameters(), lr=cfg.lr, weight_decay=0.0)
     step, _ = load_train_state(out, student, opt) if resume else (0, {})

@@ -27,6 +27,7 @@ from torch import nn
 
 from mld_core import inputs
 from mld_core.checkpoint import DRAFT_TEXT_WEIGHTS, load_config, save_json
+from mld_core.data.captions import SUBJECTS, reworded
 from mld_core.fileio import atomic_write
 from mld_core.inputs import InputError
 from mld_core.training.common import (Budget, checked_budget, load_train_state, lr_factor, save_train_state,
@@ -84,9 +85,6 @@ OPPOSITES = {"left": "right", "right": "left", "forward": "backward", "forwards"
              "counterclockwise", "counterclockwise": "clockwise", "front": "back", "back": "front"}
 
 
-SUBJECTS = ("someone", "a person", "a man", "a woman", "the person", "the man", "the woman", "he", "she",
-            "an old man", "an old woman", "a child", "a girl", "a boy", "the character", "a dancer", "a soldier",
-            "a tired person", "a happy person", "the figure", "my character", "a guy", "the lady", "an athlete")
 ACTIONS = ("walks", "runs", "jogs", "sprints", "strolls", "steps", "marches", "limps", "shuffles", "sneaks", "jumps",
            "hops", "skips", "kicks", "stomps", "waves", "raises", "lifts", "lowers", "swings", "shakes", "turns",
            "spins", "twists", "bows", "nods", "crouches", "squats", "kneels", "sits down", "stands up", "leans",
@@ -141,38 +139,6 @@ def text_variant(captions: list[str], rng: np.random.Generator, cfg: DraftTextTr
         words = [_opposite(w) for w in words]
     elif r < cfg.splice_share + cfg.drop_share + cfg.swap_share + cfg.reword_share:
         return reworded(" ".join(words), rng)
-    return " ".join(words)
-
-
-CAPTION_SUBJECTS = ("a person", "the person", "someone", "a man", "the man", "a woman", "the woman", "a human",
-                    "person", "the figure")
-SYNONYMS = {"walks": ("strolls", "paces", "moves", "goes"), "runs": ("jogs", "sprints", "dashes"),
-            "raises": ("lifts", "puts up", "brings up"), "lowers": ("brings down", "drops", "puts down"),
-            "waves": ("shakes", "swings", "moves"), "jumps": ("hops", "leaps", "takes a jump"),
-            "bows": ("bends forward", "takes a bow"), "forward": ("ahead", "straight ahead", "to the front"),
-            "backward": ("back", "backwards", "to the back"), "quickly": ("fast", "rapidly", "in a hurry"),
-            "slowly": ("gently", "calmly", "at a slow pace"), "turns": ("rotates", "spins", "changes direction"),
-            "kicks": ("kicks out", "does a kick"), "hand": ("arm",), "arm": ("hand",), "steps": ("walks", "moves"),
-            "then": ("and then", "after that", "before that"), "his": ("their", "her"), "their": ("his", "her"),
-            "energetically": ("with energy", "vigorously"), "tired": ("exhausted", "weary"),
-            "happily": ("cheerfully", "with joy"), "angrily": ("furiously", "in anger")}
-
-
-def reworded(caption: str, rng: np.random.Generator) -> str:
-    """A caption in other words: another subject (``SUBJECTS``) and, for about half the words that have one, a
-    synonym, as users word their prompts."""
-    text = caption
-    for subject in CAPTION_SUBJECTS:
-        if text.lower().startswith(subject + " "):
-            text = SUBJECTS[int(rng.integers(len(SUBJECTS)))] + text[len(subject):]
-            break
-    words = []
-    for word in text.split():
-        core = word.rstrip(".,;!?")
-        options = SYNONYMS.get(core.lower())
-        if options and rng.random() < 0.5:
-            word = options[int(rng.integers(len(options)))] + word[len(core):]
-        words.append(word)
     return " ".join(words)
 
 

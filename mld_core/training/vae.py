@@ -20,7 +20,9 @@ from tqdm import tqdm
 from mld_core.checkpoint import ModelConfig, load_config, load_weights, save_json, save_weights, skeleton_info
 from mld_core.models.vae import MotionVAE, VAEConfig
 from mld_core.motion import skeleton as sk
-from mld_core.motion.features import FOOT_CONTACT, features_to_joints
+from mld_core.motion.features import FOOT_CONTACT, ROOT_ROT_VEL, ROOT_Y, features_to_joints
+
+ROOT_CHANNELS = slice(ROOT_ROT_VEL.start, ROOT_Y.stop)  # yaw velocity, xz velocity (facing frame), root height
 from mld_core.training.common import (Budget, balanced_weights, load_train_state, lr_factor, save_train_state, set_lr,
                                      setup_torch)
 
@@ -48,11 +50,35 @@ class VAETrainConfig:
     velocity_weight: float = 0.0  # MSE of the joints' frame-to-frame velocity
     contact_weight: float = 0.0  # squared velocity of foot joints where the real clip's contact channels say contact
     bone_weight: float = 0.0  # squared error of every bone's length against the real clip's
+    # weight of the root channels (yaw velocity, xz velocity, height) in the feature MSE; their integral is the
+    # take's global trajectory, so 1 (one channel among 263) lets the latent drop most of the turning (issue 15)
+    root_weight: float = 1.0
+    # share of crops that start at their clip's first frame: the only frame whose yaw channel holds the turn from the
+    # clip's canonical facing to its smoothed facing (a spike of ~5 degrees that random crops almost never show)
+    clip_start_share: float = 0.0
+    select_by: str = "mpjpe"  # the checkpoint kept as best: lowest val "mpjpe" (root-relative) or "mpjpe_sum" (+ global)
     vae: VAEConfig = field(default_factory=VAEConfig)
 
     def __post_init__(self):
         if isinstance(self.vae, dict):
             self.vae = VAEConfig(**self.vae)
+        if self.select_by not in ("mpjpe", "mpjpe_sum"):
+            raise ValueError(f"select_by must be 'mpjpe' or 'mpjpe_sum', got {self.select_by!r}")
+        if not 0.0 <= self.clip_start_share <= 1.0:
+            raise ValueError(f"clip_start_share must be in [0, 1], got {self.clip_start_share}")
+        if self.root_weight <= 0:
+            raise ValueError(f"root_weight must be positive, got {self.root_weight}")
+
+
+def feature_weights(feature_dim: int, root_weight: float) -> torch.Tensor | None:
+    """(F,) weights of the feature MSE: ``root_weight`` on the root channels of 263-d features, 1 elsewhere."""
+    if root_weight == 1.0:
+        return None
+    if feature_dim != sk.FEATURE_DIM:
+        raise ValueError(f"root_weight needs {sk.FEATURE_DIM}-d features (root channels first), got {feature_dim}")
+    weights = torch.ones(feature_dim)
+    weights[ROOT_CHANNELS] = root_weight
+    return weights
 
 
 class GeometricLoss:
@@ -87,7 +113,8 @@ class GeometricLoss:
 class CropSampler:
     """Batches of equal-length random crops: (B, L, F) normalised features."""
 
-    def __init__(self, clips, mean, std, min_frames, max_frames, frames_per_batch, balance_power, seed):
+    def __init__(self, clips, mean, std, min_frames, max_frames, frames_per_batch, balance_power, seed,
+                 clip_start_share: float = 0.0):
         self.feats = [((c.features - mean) / std).astype(np.float32) for c in clips]
         self.lengths = np.array([len(f) for f in self.feats])
         labels = [c.action or "?" for c in clips]
@@ -95,6 +122,7 @@ class CropSampler:
         self.min_frames = min(min_frames, int(self.lengths.max()))
         self.max_frames = min(max_frames, int(self.lengths.max()))
         self.frames_per_batch = frames_per_batch
+        self.clip_start_share = clip_start_share
         self.rng = np.random.default_rng(seed)
 
     def sample(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -104,6 +132,9 @@ class CropSampler:
         B = max(4, self.frames_per_batch // L)
         idx = self.rng.choice(len(self.feats), size=B, p=w / w.sum())
         starts = [int(self.rng.integers(0, self.lengths[i] - L + 1)) for i in idx]
+        if self.clip_start_share > 0:
+            at_start = self.rng.random(B) < self.clip_start_share
+            starts = [0 if first else s for first, s in zip(at_start, starts)]
         x = np.stack([self.feats[i][s:s + L] for i, s in zip(idx, starts)])  # (B, L, F)
         return torch.from_numpy(x), torch.full((B,), L)
 
@@ -134,6 +165,16 @@ def validate_mpjpe(vae: MotionVAE, clips, mean, std, max_frames: int, batch: int
             errors.append(float((j_true - j_pred).norm(dim=-1).mean()) * 1000.0)
     vae.train()
     return float(np.mean(errors)), float(np.mean(global_errors))
+
+
+def selection_metric(record: dict, select_by: str, step: int) -> float:
+    """The number the best checkpoint minimises: val root-relative MPJPE, or its sum with the global one; without
+    validation the latest step."""
+    if "val_mpjpe_mm" not in record:
+        return -step
+    if select_by == "mpjpe_sum":
+        return record["val_mpjpe_mm"] + record["val_global_mpjpe_mm"]
+    return record["val_mpjpe_mm"]
 
 
 def model_config_for(cfg: VAETrainConfig, mean, std, actions: list, model_id: str) -> ModelConfig:
@@ -179,8 +220,9 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
     opt = torch.optim.AdamW(vae.parameters(), lr=cfg.lr, weight_decay=0.0)
     step, extra = (load_train_state(out, vae, opt) if resume else (0, {}))
     geometric = GeometricLoss(cfg, mean, std)
+    weights = feature_weights(cfg.vae.feature_dim, cfg.root_weight)
     sampler = CropSampler(train, mean, std, cfg.min_frames, cfg.max_frames, cfg.frames_per_batch,
-                          cfg.balance_power, cfg.seed + step)
+                          cfg.balance_power, cfg.seed + step, cfg.clip_start_share)
     best = extra.get("best_mpjpe_mm", float("inf"))
     actions = sorted({c.action for c in train if c.action})
     save_json(out / "train_config.json", {**asdict(cfg), "stage": "vae"})
@@ -193,7 +235,7 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
         x, lengths = sampler.sample()
         set_lr(opt, cfg.lr * lr_factor(budget.progress(step), cfg.decay_start))
         with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=cfg.bf16):
-            loss, parts, recon = vae.loss(x, lengths, return_recon=True)
+            loss, parts, recon = vae.loss(x, lengths, return_recon=True, feature_weights=weights)
         if geometric:
             extra_loss, extra_parts = geometric(recon, x)
             loss, parts = loss + extra_loss, {**parts, **extra_parts}
@@ -215,11 +257,12 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
                           f"{record['val_global_mpjpe_mm']:.1f} mm global")
             log.write(json.dumps(record) + "\n")
             log.flush()
-            metric = record.get("val_mpjpe_mm", -step)
+            metric = selection_metric(record, cfg.select_by, step)
             if metric <= best or not val:
                 best = metric
                 config = model_config_for(cfg, mean, std, actions, model_id=f"{out.name}-vae")
                 config.provenance["vae_val_mpjpe_mm"] = record.get("val_mpjpe_mm")
+                config.provenance["vae_val_global_mpjpe_mm"] = record.get("val_global_mpjpe_mm")
                 config.provenance["vae_steps"] = step
                 save_weights(out / "vae.safetensors", vae)
                 save_json(out / "config.json", config.to_dict())
