@@ -393,3 +393,23 @@ def test_reworded_captions_add_versions_in_other_words_and_keep_the_originals():
     assert all("left" in t or t.split()[-1] in ("runs.", "jogs.", "sprints.", "dashes.") for t in texts), texts
     assert any(not t.startswith(("a person", "someone")) or "walks" not in t and "runs" not in t for t in texts)
     assert texts == with_reworded_captions(units, 3, seed=0)[0]  # seeded
+
+
+def test_caption_embedding_cache_is_remade_for_another_caption_list(tmp_path):
+    from mld_core.training.denoiser import cached_caption_embeddings
+
+    calls = []
+
+    def make(texts):
+        def run():
+            calls.append(list(texts))
+            return {"pooled": torch.arange(len(texts), dtype=torch.float32)[:, None]}
+        return run
+
+    path = tmp_path / "text.safetensors"
+    first = cached_caption_embeddings(path, ["a", "b"], make(["a", "b"]))
+    again = cached_caption_embeddings(path, ["a", "b"], make(["a", "b"]))
+    assert len(calls) == 1 and torch.equal(first["pooled"], again["pooled"])  # read back, not remade
+    cached_caption_embeddings(path, ["a", "c"], make(["a", "c"]))  # same count, other captions: remade
+    cached_caption_embeddings(path, ["a", "c", "d"], make(["a", "c", "d"]))
+    assert calls[1:] == [["a", "c"], ["a", "c", "d"]]

@@ -11,6 +11,7 @@ The run folder is a complete model folder (config.json, vae.safetensors, denoise
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import shutil
 import time
@@ -164,6 +165,20 @@ def _cached(path: Path, make) -> dict:
     return data
 
 
+def cached_caption_embeddings(path: Path, captions: list[str], make) -> dict:
+    """``embed_captions`` of ``captions``, kept at ``path`` with the captions' SHA-256: a cache made for another
+    caption list (other rewordings, a copied cache) is made again, never read against the wrong rows."""
+    digest = torch.frombuffer(bytearray(hashlib.sha256("\n".join(captions).encode()).digest()), dtype=torch.uint8)
+    if path.is_file():
+        data = load_file(str(path))
+        same_rows = data["pooled"].shape[0] == len(captions)
+        if same_rows and torch.equal(data.get("captions_sha256", digest), digest):  # older caches: rows only
+            return data
+    data = {**make(), "captions_sha256": digest}
+    save_file({k: v.contiguous() for k, v in data.items()}, str(path))
+    return data
+
+
 def _write_coverage_index(out: Path, units: list[Unit], encoder) -> None:
     """The run's prompt-coverage index (mld_core.coverage) from its training captions and content labels."""
     from mld_core import coverage
@@ -221,7 +236,8 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
 
         encoder = load_text_encoder(cfg.text_encoder)
         dcfg.text_dim = encoder.dim
-        text = _cached(out / TEXT_CACHE, lambda: embed_captions(encoder, captions, dcfg.max_text_tokens))
+        text = cached_caption_embeddings(out / TEXT_CACHE, captions,
+                                         lambda: embed_captions(encoder, captions, dcfg.max_text_tokens))
         _write_coverage_index(out, units, encoder)
         del encoder
     label_ids = torch.tensor([actions.index(units[u].label) if units[u].label in actions else 0

@@ -33,7 +33,8 @@ from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import LCMScheduler
 from mld_core.training.common import (Budget, balanced_weights, checked_budget, load_train_state, lr_factor,
                                      save_train_state, set_lr, setup_torch)
-from mld_core.training.denoiser import LATENT_CACHE, TEXT_CACHE, _cached, embed_captions, encode_latents, text_units
+from mld_core.training.denoiser import (LATENT_CACHE, TEXT_CACHE, _cached, cached_caption_embeddings, embed_captions,
+                                       encode_latents, text_units)
 from mld_core.training.vae import prepare_run_dir
 
 DRAFT_WEIGHTS = "draft.safetensors"
@@ -156,8 +157,8 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
     captions = sorted({c for u in units for c in u.captions})
     caption_index = {c: i for i, c in enumerate(captions)}
     unit_captions = [np.array([caption_index[c] for c in u.captions]) for u in units]
-    text = _cached(out / TEXT_CACHE, lambda: embed_captions(load_text_encoder(base.text_encoder), captions,
-                                                            base.denoiser.max_text_tokens))
+    text = cached_caption_embeddings(out / TEXT_CACHE, captions, lambda: embed_captions(
+        load_text_encoder(base.text_encoder), captions, base.denoiser.max_text_tokens))
 
     # 2. Teacher (frozen), student (the teacher plus a guidance input), its EMA target.
     teacher = LatentDenoiser(base.denoiser)
