@@ -378,7 +378,14 @@ def test_root_weight_scales_only_the_root_channels_and_trains(folder, tmp_path, 
     capsys.readouterr()
     assert main(["train", "vae", "--data", str(folder), "--out", str(tmp_path / "bad"), "--steps", "1",
                  "--config", str(cfg)]) == 2
-    assert "root_weight must be positive" in capsys.readouterr().err
+    assert "root_weight must be between" in capsys.readouterr().err
+    from mld_core.training.denoiser import DenoiserTrainConfig
+
+    for make, value, words in ((lambda v: VAETrainConfig(root_weight=v), float("nan"), "root_weight must be a"),
+                               (lambda v: VAETrainConfig(clip_start_share=v), 1.5, "clip_start_share must be between"),
+                               (lambda v: DenoiserTrainConfig(reworded_captions=v), -1, "reworded_captions must be")):
+        with pytest.raises(ValueError, match=words):
+            make(value)
 
 
 def test_reworded_captions_add_versions_in_other_words_and_keep_the_originals():

@@ -23,6 +23,7 @@ import torch
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
+from mld_core import inputs
 from mld_core.checkpoint import load_config, load_weights, save_json, save_weights
 from mld_core.data.captions import reworded
 from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser
@@ -61,6 +62,7 @@ class DenoiserTrainConfig:
     denoiser: DenoiserConfig = field(default_factory=DenoiserConfig)
 
     def __post_init__(self):
+        self.reworded_captions = inputs.int_in_range(self.reworded_captions, "reworded_captions", 0, 20)
         if isinstance(self.denoiser, dict):
             self.denoiser = DenoiserConfig(**self.denoiser)
 
@@ -128,7 +130,6 @@ def encode_latents(vae: MotionVAE, units: list[Unit], mean, std, crops: int, min
             "unit": torch.tensor([j[0] for j in jobs])}
 
 
-@torch.no_grad()
 def with_reworded_captions(units: list, per_caption: int, seed: int) -> list[list[str]]:
     """Each unit's captions, followed by ``per_caption`` rewordings of each (``mld_core.data.captions.reworded``;
     duplicates dropped): the texts a unit trains on."""
@@ -142,6 +143,7 @@ def with_reworded_captions(units: list, per_caption: int, seed: int) -> list[lis
     return out
 
 
+@torch.no_grad()
 def embed_captions(encoder, captions: list[str], max_tokens: int, batch: int = 64) -> dict:
     pooled, tokens, mask = [], [], []
     for k in tqdm(range(0, len(captions), batch), desc="encoding captions", unit="batch", dynamic_ncols=True):

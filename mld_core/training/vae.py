@@ -17,14 +17,15 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from mld_core import inputs
 from mld_core.checkpoint import ModelConfig, load_config, load_weights, save_json, save_weights, skeleton_info
 from mld_core.models.vae import MotionVAE, VAEConfig
 from mld_core.motion import skeleton as sk
 from mld_core.motion.features import FOOT_CONTACT, ROOT_ROT_VEL, ROOT_Y, features_to_joints
-
-ROOT_CHANNELS = slice(ROOT_ROT_VEL.start, ROOT_Y.stop)  # yaw velocity, xz velocity (facing frame), root height
 from mld_core.training.common import (Budget, balanced_weights, load_train_state, lr_factor, save_train_state, set_lr,
                                      setup_torch)
+
+ROOT_CHANNELS = slice(ROOT_ROT_VEL.start, ROOT_Y.stop)  # yaw velocity, xz velocity (facing frame), root height
 
 
 @dataclass
@@ -64,10 +65,8 @@ class VAETrainConfig:
             self.vae = VAEConfig(**self.vae)
         if self.select_by not in ("mpjpe", "mpjpe_sum"):
             raise ValueError(f"select_by must be 'mpjpe' or 'mpjpe_sum', got {self.select_by!r}")
-        if not 0.0 <= self.clip_start_share <= 1.0:
-            raise ValueError(f"clip_start_share must be in [0, 1], got {self.clip_start_share}")
-        if self.root_weight <= 0:
-            raise ValueError(f"root_weight must be positive, got {self.root_weight}")
+        self.clip_start_share = inputs.number_in_range(self.clip_start_share, "clip_start_share", 0.0, 1.0)
+        self.root_weight = inputs.number_in_range(self.root_weight, "root_weight", 1e-6, 1e6)
 
 
 def feature_weights(feature_dim: int, root_weight: float) -> torch.Tensor | None:
