@@ -77,11 +77,11 @@ def test_train_vae_then_denoiser_then_generate(folder, tmp_path):
     log = [json.loads(line) for line in (vae_run / "log.jsonl").read_text().splitlines()]
     assert log[-1]["step"] == 30
 
-    cfg_den = tmp_path / "den.json"
-    cfg_den.write_text(json.dumps(TINY_DEN))
-    den_run = tmp_path / "mld"
-    assert main(["train", "denoiser", "--data", str(folder), "--vae", str(vae_run), "--out", str(den_run),
-                 "--steps", "40", "--threads", "1", "--config", str(cfg_den), "--lr", "1e-3", "--bf16"]) == 0
+    den_run = tmp_path / "mld"  # --config inline: the JSON object itself, not a file
+    den_args = ["train", "denoiser", "--data", str(folder), "--vae", str(vae_run), "--out", str(den_run)]
+    assert main(den_args + ["--config", '{"lr": 1e-3,'] + ["--steps", "1"]) == 2 and not den_run.exists()
+    assert main(den_args + ["--steps", "40", "--threads", "1", "--config", json.dumps(TINY_DEN), "--lr", "1e-3",
+                            "--bf16"]) == 0
     assert json.loads((den_run / "train_config.json").read_text())["bf16"] is True
     losses = [json.loads(line)["loss"] for line in (den_run / "log.jsonl").read_text().splitlines()]
     assert len(losses) == 4 and losses[-1] < losses[0]
@@ -400,6 +400,26 @@ def test_reworded_captions_add_versions_in_other_words_and_keep_the_originals():
     assert all("left" in t or t.split()[-1] in ("runs.", "jogs.", "sprints.", "dashes.") for t in texts), texts
     assert any(not t.startswith(("a person", "someone")) or "walks" not in t and "runs" not in t for t in texts)
     assert texts == with_reworded_captions(units, 3, seed=0)[0]  # seeded
+
+
+def test_rewording_brings_in_no_wording_of_the_held_out_paraphrases():
+    """side_accuracy.py's paraphrases measure wordings the captions lack; a synonym that writes one of them
+    into training would turn that measure into recall (function words such as pronouns aside)."""
+    import re
+    import sys
+    from pathlib import Path
+
+    from mld_core.data.captions import CONTENTS, STYLES, SYNONYMS, captions_for
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    from side_accuracy import PARAPHRASES
+
+    held_out = " | ".join(p.lower() for texts in PARAPHRASES.values() for p in texts)
+    captions = " | ".join(c.lower() for content in CONTENTS for style in STYLES for i in range(8)
+                          for c in captions_for(content, style, f"x_{content}_{style}_{i:03d}"))
+    leaked = [option for word, options in SYNONYMS.items() if word not in ("his", "their") for option in options
+              if re.search(rf"\b{re.escape(option)}\b", held_out) and not re.search(rf"\b{re.escape(option)}\b", captions)]
+    assert leaked == []
 
 
 def test_caption_embedding_cache_is_remade_for_another_caption_list(tmp_path):

@@ -506,12 +506,14 @@ SUBJECTS = ("someone", "a person", "a man", "a woman", "the person", "the man", 
             "a tired person", "a happy person", "the figure", "my character", "a guy", "the lady", "an athlete")
 CAPTION_SUBJECTS = ("a person", "the person", "someone", "a man", "the man", "a woman", "the woman", "a human",
                     "person", "the figure")
-SYNONYMS = {"walks": ("strolls", "paces", "moves", "goes"), "runs": ("jogs", "sprints", "dashes"),
+# No synonym writes in a wording of the held-out paraphrases (scripts/side_accuracy.py) that the captions lack
+# (tested): those paraphrases measure how the model reads words it was not trained on.
+SYNONYMS = {"walks": ("paces", "moves", "goes"), "runs": ("jogs", "sprints", "dashes"),
             "raises": ("lifts", "puts up", "brings up"), "lowers": ("brings down", "drops", "puts down"),
-            "waves": ("shakes", "swings", "moves"), "jumps": ("hops", "leaps", "takes a jump"),
+            "waves": ("shakes", "swings", "moves"), "jumps": ("leaps", "takes a jump"),
             "bows": ("bends forward", "takes a bow"), "forward": ("ahead", "straight ahead", "to the front"),
             "backward": ("back", "backwards", "to the back"), "quickly": ("fast", "rapidly", "in a hurry"),
-            "slowly": ("gently", "calmly", "at a slow pace"), "turns": ("rotates", "spins", "changes direction"),
+            "slowly": ("gently", "calmly", "at a slow pace"), "turns": ("rotates", "spins"),
             "kicks": ("kicks out", "does a kick"), "hand": ("arm",), "arm": ("hand",), "steps": ("walks", "moves"),
             "then": ("and then", "after that", "before that"), "his": ("their", "her"), "their": ("his", "her"),
             "energetically": ("with energy", "vigorously"), "tired": ("exhausted", "weary"),

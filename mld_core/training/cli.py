@@ -26,7 +26,8 @@ def _common(p) -> None:
     p.add_argument("--layers", type=int, default=None, help="transformer layers (odd with skips)")
     p.add_argument("--no-skip", action="store_true", help="turn the long skip connections off")
     p.add_argument("--bf16", action="store_true", help="bfloat16 autocast (about 2x faster on CPUs with AVX512-BF16 or AMX)")
-    p.add_argument("--config", type=Path, default=None, help="JSON overrides of the stage's config dataclass")
+    p.add_argument("--config", default=None, metavar="JSON_OR_FILE",
+                   help="overrides of the stage's config dataclass: a JSON object, inline or in a file")
     p.add_argument("--init", nargs="?", const="default", default=None, metavar="MODEL_DIR",
                    help="fine-tune: start from a model folder's weights and architecture (no value: the bundled model)")
 
@@ -72,11 +73,12 @@ def _model_folder(value: str | None, flag: str) -> Path:
 
 
 def _overrides(args, config_class) -> dict:
-    """--config: a JSON object of the stage config's own fields."""
+    """--config: a JSON object of the stage config's own fields, written inline or in a file."""
     if args.config is None:
         return {}
     try:
-        data = json.loads(args.config.read_text())
+        inline = args.config.lstrip().startswith("{")
+        data = json.loads(args.config if inline else Path(args.config).read_text())
     except (OSError, ValueError) as exc:
         raise UsageError(f"cannot read --config {args.config}: {exc}") from None
     if not isinstance(data, dict):
@@ -211,7 +213,8 @@ def _run_distillation(args, config_class, train, install, what: str, extra: dict
 def _stage_options(p, config_name: str) -> None:
     """The options train draft and train draft-text share."""
     _run_options(p)
-    p.add_argument("--config", type=Path, default=None, help=f"JSON overrides of {config_name}")
+    p.add_argument("--config", default=None, metavar="JSON_OR_FILE",
+                   help=f"overrides of {config_name}: a JSON object, inline or in a file")
 
 
 def register(groups) -> None:
