@@ -237,16 +237,22 @@ def _check_draft(draft: DraftConfig, scheduler: SchedulerConfig) -> None:
 
 
 def _check_repair(repair: RepairConfig) -> None:
-    for name in ("bone_lengths", "plant_feet"):
+    for name in ("bone_lengths", "plant_feet", "lock_feet"):
         if not isinstance(getattr(repair, name), bool):
             raise ValueError(f"repair.{name} must be true or false, got {getattr(repair, name)!r}")
     for name in ("contact_height_m", "model_weight", "smooth_frames", "max_correction_m",
-                 "keep_travel_frames", "min_travel_kept", "min_travel_m"):
+                 "keep_travel_frames", "min_travel_kept", "min_travel_m", "lock_release", "max_lock_shift_m",
+                 "lock_min_knee_deg", "lock_max_double_support"):
         value = getattr(repair, name)
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
             raise ValueError(f"repair.{name} must be a finite number >= 0, got {value!r}")
     if repair.model_weight <= 0:
         raise ValueError("repair.model_weight must be above 0")
+    for name in ("lock_release", "lock_max_double_support"):
+        if getattr(repair, name) > 1:
+            raise ValueError(f"repair.{name} must be between 0 and 1, got {getattr(repair, name)!r}")
+    if repair.lock_min_knee_deg >= 90:
+        raise ValueError(f"repair.lock_min_knee_deg must be below 90, got {repair.lock_min_knee_deg!r}")
 
 
 def save_model(model_dir: Path, config: ModelConfig, vae: torch.nn.Module, denoiser: torch.nn.Module | None = None,

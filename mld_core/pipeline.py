@@ -13,7 +13,7 @@ from __future__ import annotations
 import time
 import warnings
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -28,7 +28,7 @@ from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, Checkpoi
 from mld_core.models.denoiser import LatentDenoiser
 from mld_core.constraints import bone_stretch, planted_foot_speed
 from mld_core.motion.features import FOOT_CONTACT, features_to_joints
-from mld_core.motion.repair import repair_features
+from mld_core.motion.repair import RepairConfig, lock_feet, repair_features
 from mld_core.models.transformer import native_bf16, packing_available
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import DDIMScheduler, LCMScheduler
@@ -514,20 +514,25 @@ class MLDPipeline:
             w = np.linspace(0.0, 1.0, overlap)[:, None]  # cross-fade the overlap: both are nearly the same frames
             seam = (1 - w) * features[-overlap:] + w * new[:overlap]
             features = np.concatenate([features[:-overlap], seam, new[overlap:]])  # (T, F)
-        if repair:  # each segment on its own: a walk backwards keeps its travel after a long run
-            bounds = starts[1:] + [len(features)]
-            features = np.concatenate([self.repair_rows(features[None, a:b], [b - a])[0]
+        if repair:  # planted per segment (a walk backwards keeps its travel after a long run), then feet locked
+            bounds = starts[1:] + [len(features)]  # over the whole take: a foot held across a seam stays held
+            per_segment = replace(self.config.repair, lock_feet=False)
+            features = np.concatenate([self.repair_rows(features[None, a:b], [b - a], per_segment)[0]
                                        for a, b in zip(starts, bounds)])
+            if self.config.repair.lock_feet and features.shape[-1] == 263:
+                spans = list(zip(starts, bounds))  # a shuffling segment is not held (lock_feet)
+                features = lock_feet(features, self.config.repair, spans).astype(features.dtype)
         joints = self.joints_from_features(features[None], [len(features)])
         timings = {"segments": starts, "total_s": time.perf_counter() - t_start}
         return MLDOutput(features[None].astype(np.float32), joints, np.array([len(features)]),
                          [" | ".join(p for p, _ in segments)], [seed], self.config.fps, self.model_id, timings,
                          residuals=[residuals])
 
-    def repair_rows(self, features: np.ndarray, lengths: list) -> np.ndarray:
-        """Each row's first ``lengths[i]`` frames with the config's repairs applied (a copy; 263-d features only)."""
-        cfg = self.config.repair
-        if features.shape[-1] != 263 or not (cfg.bone_lengths or cfg.plant_feet):
+    def repair_rows(self, features: np.ndarray, lengths: list, config: RepairConfig | None = None) -> np.ndarray:
+        """Each row's first ``lengths[i]`` frames with the repairs of ``config`` (default: the model's) applied (a
+        copy; 263-d features only)."""
+        cfg = config or self.config.repair
+        if features.shape[-1] != 263 or not (cfg.bone_lengths or cfg.plant_feet or cfg.lock_feet):
             return features
         out = features.copy()
         for i, n in enumerate(lengths):

@@ -10,8 +10,12 @@ prints the foot skating ratio (mld_core.eval.quality) and the per-take bone leng
 - ``recon pose + real root``: the reconstruction's root-relative channels under the real root channels (0-3);
 - ``real pose + recon root``: the other way round; the two say whether the root trajectory or the pose skates;
 - ``sample``: the diffusion model on the clip's first caption at the clip's length (seed = clip index), unrepaired;
-- ``one skeleton`` / ``planted fully`` / ``repaired (default)``: mld_core.motion.repair's bone lengths alone, root
-  re-estimation from the planted feet with no travel kept, and the model's configured repairs.
+- ``one skeleton`` / ``planted fully`` / ``repaired, feet not locked`` / ``repaired (default)``:
+  mld_core.motion.repair's bone lengths alone, root re-estimation from the planted feet with no travel kept, the
+  model's configured repairs without lock_feet, and with it.
+
+Besides skating, bone length SD, jerk and travel it prints the share of frames with a straight knee (either knee
+bent less than 3 degrees), which the leg IK of lock_feet raises where it holds a foot out of the leg's reach.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +48,16 @@ def bone_sd_mm(joints: np.ndarray) -> float:
     child = np.arange(1, 22)
     length = np.linalg.norm(joints[:, child] - joints[:, parents[child]], axis=-1)  # (T, 21)
     return float(length.std(axis=0).mean() * 1000.0)
+
+
+def straight_knee_share(joints: np.ndarray, degrees: float = 3.0) -> float:
+    """Share of frames (T, 22, 3) in which either knee is bent less than ``degrees`` (the leg straight)."""
+    bent = []
+    for hip, knee, ankle in ((1, 4, 7), (2, 5, 8)):
+        thigh, shin = joints[:, knee] - joints[:, hip], joints[:, ankle] - joints[:, knee]
+        cos = (thigh * shin).sum(-1) / (np.linalg.norm(thigh, axis=-1) * np.linalg.norm(shin, axis=-1) + 1e-12)
+        bent.append(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))  # (T,) 0 = straight
+    return float((np.minimum(*bent) < degrees).mean())
 
 
 def reconstruct(pipe: MLDPipeline, features: list[np.ndarray]) -> list[np.ndarray]:
@@ -92,6 +107,8 @@ def main(argv=None) -> int:
                     "sample": samples,
                     "sample, one skeleton": [features_with_bone_lengths(f) for f in samples],
                     "sample, planted fully": [plant_feet(f, full) for f in samples],
+                    "sample, repaired, feet not locked": [repair_features(f, replace(pipe.config.repair, lock_feet=False))
+                                                          for f in samples],
                     "sample, repaired (default)": [repair_features(f, pipe.config.repair) for f in samples]}
         rows[content] = {}
         for name, feats in variants.items():
@@ -99,12 +116,13 @@ def main(argv=None) -> int:
             rows[content][name] = {"skating": float(np.mean([foot_skating_ratio(j) for j in joints])),
                                    "bone_sd_mm": float(np.mean([bone_sd_mm(j) for j in joints])),
                                    "jerk": float(np.mean([mean_jerk(j) for j in joints])),
+                                   "straight_knee": float(np.mean([straight_knee_share(j) for j in joints])),
                                    "travel_m": float(np.mean([np.linalg.norm(j[-1, 0, [0, 2]] - j[0, 0, [0, 2]])
                                                               for j in joints]))}
         print(f"{content} ({len(chosen)} clips)", flush=True)
         for name, r in rows[content].items():
             print(f"  {name:32s} skating {r['skating']:.3f}  bone SD {r['bone_sd_mm']:5.1f} mm  jerk {r['jerk']:5.1f}"
-                  f"  travel {r['travel_m']:4.2f} m",
+                  f"  travel {r['travel_m']:4.2f} m  straight knee {r['straight_knee']:.3f}",
                   flush=True)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))

@@ -1,4 +1,5 @@
-"""Repairs of generated takes (mld_core.motion.repair): planted feet that do not slide, one skeleton per take."""
+"""Repairs of generated takes (mld_core.motion.repair): planted feet that do not slide, locked feet, one skeleton
+per take."""
 
 from __future__ import annotations
 
@@ -10,9 +11,9 @@ import pytest
 from mld_core.checkpoint import CheckpointError, load_config
 from mld_core.eval.quality import foot_skating_ratio
 from mld_core.motion import skeleton as sk
-from mld_core.motion.features import RIC, features_to_joints, joints_to_features
-from mld_core.motion.repair import (RepairConfig, features_with_bone_lengths, plant_feet, repair_features,
-                                    two_bone_ik)
+from mld_core.motion.features import FOOT_CONTACT, RIC, features_to_joints, joints_to_features
+from mld_core.motion.repair import (RepairConfig, double_support_share, features_with_bone_lengths, foot_hold_shifts,
+                                    lock_feet, plant_feet, repair_features, two_bone_ik)
 from mld_core.testing import tiny_model
 
 WALK = "dataset-2_walk-turn-left_normal_027"
@@ -92,10 +93,12 @@ def test_two_bone_ik_reaches_and_keeps_lengths():
 
 def test_repair_applies_the_switches_in_order(walk):
     slid = _sliding(walk)
-    np.testing.assert_array_equal(repair_features(slid, RepairConfig(bone_lengths=False, plant_feet=False)), slid)
-    np.testing.assert_allclose(repair_features(slid, RepairConfig(bone_lengths=False)), plant_feet(slid))
-    both = repair_features(slid)
-    np.testing.assert_allclose(both, plant_feet(features_with_bone_lengths(slid)))
+    none = RepairConfig(bone_lengths=False, plant_feet=False, lock_feet=False)
+    np.testing.assert_array_equal(repair_features(slid, none), slid)
+    np.testing.assert_allclose(repair_features(slid, RepairConfig(bone_lengths=False, lock_feet=False)), plant_feet(slid))
+    np.testing.assert_allclose(repair_features(slid, RepairConfig(bone_lengths=False, plant_feet=False)), lock_feet(slid))
+    every = repair_features(slid)
+    np.testing.assert_allclose(every, lock_feet(plant_feet(features_with_bone_lengths(slid))))
 
 
 def test_pipeline_repairs_free_takes_only_when_asked(tmp_path):
@@ -108,13 +111,17 @@ def test_pipeline_repairs_free_takes_only_when_asked(tmp_path):
     np.testing.assert_allclose(on.features, pipe.repair_rows(off.features, off.lengths.tolist()), atol=1e-5)
     single = pipe("a wave", 2.5, seed=2, num_inference_steps=2)
     np.testing.assert_allclose(single.features[0], on.features[1], atol=1e-5)  # batch equals single runs
-    pipe.config.repair = RepairConfig(bone_lengths=False, plant_feet=False)
+    pipe.config.repair = RepairConfig(bone_lengths=False, plant_feet=False, lock_feet=False)
     np.testing.assert_array_equal(pipe(["a walk", "a wave"], 2.5, seed=[1, 2], num_inference_steps=2).features,
                                   off.features)
 
 
 @pytest.mark.parametrize("repair, words", [("on", "JSON object"), ({"plant_feet": "yes"}, "true or false"),
-                                           ({"smooth_frames": -1}, ">= 0"), ({"feet": True}, "feet")])
+                                           ({"smooth_frames": -1}, ">= 0"), ({"feet": True}, "feet"),
+                                           ({"lock_feet": 1}, "true or false"), ({"lock_release": 1.5}, "between 0 and 1"),
+                                           ({"lock_min_knee_deg": 95}, "below 90"),
+                                           ({"lock_max_double_support": 2}, "between 0 and 1"),
+                                           ({"max_lock_shift_m": float("nan")}, ">= 0")])
 def test_a_bad_repair_entry_is_a_checkpoint_error(tmp_path, repair, words):
     model = tiny_model(tmp_path / "m")
     config = json.loads((model / "config.json").read_text())
@@ -135,3 +142,120 @@ def test_planting_keeps_the_travel_the_legs_do_not_carry(walk):
 
     assert kept(RepairConfig(min_travel_kept=0.0)) < 0.25  # planted fully, the glide (all but the capped part) stops
     assert kept(RepairConfig(min_travel_kept=0.8)) == pytest.approx(0.8, abs=0.02)
+
+
+def _knee_bend_deg(joints):
+    """Each knee's bend (T, 2) in degrees: 0 = a straight leg."""
+    bends = []
+    for hip, knee, ankle in ((1, 4, 7), (2, 5, 8)):
+        thigh, shin = joints[:, knee] - joints[:, hip], joints[:, ankle] - joints[:, knee]
+        cos = (thigh * shin).sum(-1) / (np.linalg.norm(thigh, axis=-1) * np.linalg.norm(shin, axis=-1))
+        bends.append(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return np.stack(bends, axis=1)
+
+
+def test_locking_holds_the_feet_a_sliding_root_drags(walk):
+    slid = _sliding(walk)
+    assert foot_skating_ratio(features_to_joints(slid)) == 1.0
+    locked = lock_feet(slid)
+    assert foot_skating_ratio(features_to_joints(locked)) < 0.35  # from 1.0: the stance feet stay put, mostly
+    changed = np.flatnonzero(np.abs(locked - slid).max(axis=0) > 1e-9)
+    legs = {4 + 3 * (j - 1) + k for j in (4, 5, 7, 8, 10, 11) for k in range(3)}  # knees, ankles, toes (RIC)
+    assert set(changed.tolist()) <= legs  # the root, the rest of the body and the contact channels stay
+    before, after = features_to_joints(slid), features_to_joints(locked)
+    assert _bone_sd_mm(after) <= _bone_sd_mm(before) + 0.01  # the legs keep their bone lengths
+
+
+def test_a_held_foot_never_straightens_the_knee(walk):
+    slid = _sliding(walk)
+    before = _knee_bend_deg(features_to_joints(slid))
+    for limit in (5.0, 20.0):
+        after = _knee_bend_deg(features_to_joints(lock_feet(slid, RepairConfig(lock_min_knee_deg=limit))))
+        assert (after >= np.minimum(before, limit) - 0.05).all()  # never straighter than the limit or the take
+    unlimited = _knee_bend_deg(features_to_joints(lock_feet(slid, RepairConfig(lock_min_knee_deg=0.0))))
+    assert (unlimited < np.minimum(before, 5.0) - 0.05).any()  # without the limit a held foot locks the knee
+    strict = lock_feet(slid, RepairConfig(lock_min_knee_deg=20.0))
+    assert foot_skating_ratio(features_to_joints(strict)) > foot_skating_ratio(features_to_joints(lock_feet(slid)))
+
+
+def test_locking_leaves_a_take_without_plants_as_it_is(walk):
+    airborne = walk.copy()
+    airborne[:, FOOT_CONTACT] = 0.0
+    np.testing.assert_allclose(lock_feet(airborne), airborne, atol=1e-9)
+
+
+def _standing_world(frames):
+    """World joints (T, 22, 3) of a figure standing with bent knees (hips 0.9 m, knees 0.5 m up, 15 cm forward)."""
+    world = np.zeros((frames, 22, 3))
+    for hip, knee, ankle, toe, x in ((1, 4, 7, 10, 0.1), (2, 5, 8, 11, -0.1)):
+        world[:, [hip, knee, ankle, toe], 0] = x
+        world[:, [hip, knee, ankle], 1] = 0.9, 0.5, 0.1
+        world[:, knee, 2], world[:, toe, 2] = 0.15, 0.14
+    return world
+
+
+def test_held_shifts_are_capped_and_let_go_in_the_air():
+    world = _standing_world(30)
+    world[:, :, 0] += np.arange(30)[:, None] * 0.04  # the whole body glides 4 cm per frame along x
+    world[20:, [7, 10], 1] += 0.2  # the left foot lifts off at frame 20
+    contact = np.zeros((30, 4))
+    contact[:20, :2] = 1.0  # the left ankle and toe are planted until then; the right foot never is
+    cfg = RepairConfig(max_lock_shift_m=0.25, lock_release=0.5)
+    shifts = foot_hold_shifts(world, contact, cfg)  # (T, 2, 2)
+    np.testing.assert_allclose(shifts[1:5, 0, 0], -0.04 * np.arange(1, 5))  # the planted foot is held in place
+    assert np.linalg.norm(shifts[19, 0]) == pytest.approx(0.25)  # up to the cap
+    np.testing.assert_allclose(shifts[20:23, 0, 0], -0.25 * 0.5 ** np.arange(1, 4))  # then let go in the air
+    assert np.abs(shifts[:, 1]).max() == 0.0
+
+
+def test_a_foot_still_on_the_floor_keeps_its_hold():
+    world = _standing_world(30)
+    world[:, :, 0] += np.arange(30)[:, None] * 0.04
+    contact = np.zeros((30, 4))
+    contact[:5, :2] = 1.0  # the left foot is planted for 5 frames, then its contact goes off while it stays down
+    shifts = foot_hold_shifts(world, contact, RepairConfig())  # (T, 2, 2)
+    np.testing.assert_allclose(shifts[4:, 0, 0], -0.16)  # no let-go on the floor: that would slide it
+
+
+def test_a_take_that_shuffles_without_lifting_its_feet_is_not_locked(walk):
+    slid = _sliding(walk)
+    joints = features_to_joints(slid)
+    shuffled = slid.copy()
+    shuffled[:, FOOT_CONTACT] = 1.0  # every foot joint in contact all the time: only the low ones count as planted
+    share = double_support_share(joints, shuffled[:, FOOT_CONTACT])
+    assert share > double_support_share(joints, slid[:, FOOT_CONTACT])
+    np.testing.assert_array_equal(lock_feet(shuffled, RepairConfig(lock_max_double_support=share - 0.01)), shuffled)
+    assert np.abs(lock_feet(shuffled, RepairConfig(lock_max_double_support=share)) - shuffled).max() > 0.01
+
+
+def test_a_shuffling_segment_is_not_held_but_a_stepping_one_is(walk):
+    slid = _sliding(walk)
+    n, spans = len(slid) // 2, [(0, len(slid) // 2), (len(slid) // 2, len(slid))]
+    mixed = slid.copy()
+    mixed[n:, FOOT_CONTACT] = 1.0  # the second segment shuffles: every low foot joint in contact
+    joints = features_to_joints(mixed)
+    cfg = RepairConfig(lock_max_double_support=0.5)
+    assert double_support_share(joints[:n], mixed[:n, FOOT_CONTACT]) <= 0.5
+    assert double_support_share(joints[n:], mixed[n:, FOOT_CONTACT]) > 0.5
+    split = lock_feet(mixed, cfg, spans)
+    assert np.abs(split[:n] - mixed[:n]).max() > 0.01  # the stepping segment is held
+    unplanted = mixed.copy()
+    unplanted[n:, FOOT_CONTACT] = 0.0  # the same take with no plant at all in the second segment
+    np.testing.assert_allclose(split[:, RIC], lock_feet(unplanted, cfg, spans)[:, RIC])  # no new hold there
+    step = np.linalg.norm(np.diff(features_to_joints(split)[:, [7, 8, 10, 11]], axis=0), axis=-1).max()
+    assert step < 0.3  # no foot jumps where the segments meet: a hold carried into the shuffle is not dropped
+
+
+def test_held_shifts_stop_where_the_leg_would_straighten():
+    world = _standing_world(30)
+    world[:, :, 0] += np.arange(30)[:, None] * 0.04
+    contact = np.zeros((30, 4))
+    contact[:, :2] = 1.0
+    cfg = RepairConfig(max_lock_shift_m=1.0, lock_min_knee_deg=20.0)
+    shifts = foot_hold_shifts(world, contact, cfg)  # (T, 2, 2)
+    thigh, shin = np.hypot(0.4, 0.15), np.hypot(0.4, 0.15)
+    reach = np.sqrt(thigh ** 2 + shin ** 2 + 2 * thigh * shin * np.cos(np.radians(20.0)))
+    held_ankle = world[:, 7] + np.stack([shifts[:, 0, 0], np.zeros(30), shifts[:, 0, 1]], axis=1)
+    distance = np.linalg.norm(held_ankle - world[:, 1], axis=-1)  # (T,) hip to the held ankle
+    assert distance.max() == pytest.approx(reach, abs=1e-9)  # held up to the reach, not beyond
+    assert np.linalg.norm(shifts[-1, 0]) == pytest.approx(np.sqrt(reach ** 2 - 0.8 ** 2), abs=1e-9)

@@ -4,6 +4,11 @@
   joint is in contact (the take's own contact channels, and near its lowest height), the root moves so that the
   foot stays where it is; elsewhere the generated root velocity is kept. The pose, rotations and the root's
   height and turning are unchanged. docs/evaluation.md ("Where the skating comes from") has the measurements.
+- :func:`lock_feet` holds each planted foot where it is: while the toe (or, if the toe is up, the ankle) is in
+  contact, the foot is shifted against its own ground slide and the knee bends to reach it (two-bone IK); the
+  shift is let go while the foot is in the air, and the leg never straightens to reach it. The root is unchanged:
+  this removes the slide that planting the root leaves where the generated strides are too short for the
+  generated travel (runs, dashes, sidesteps). Takes whose feet hardly leave the floor are not locked.
 - :func:`keep_bone_lengths` rebuilds joints (T, 22, 3) with fixed bone lengths, keeping every bone's direction
   and the pelvis: the decoded joints otherwise stretch bones by 5-12 mm SD within a take.
 """
@@ -34,16 +39,24 @@ class RepairConfig:
     keep_travel_frames: float = 0.0  # Gaussian sigma (frames) > 0: the root keeps its generated travel at this scale
     min_travel_kept: float = 0.8  # planting may shorten a take's travel (start to end) to this share, not below
     min_travel_m: float = 0.3  # takes that travel less than this are planted fully
+    lock_feet: bool = True  # lock_feet: planted feet held in place by the leg (after the root is planted)
+    lock_release: float = 0.5  # share of a foot's held shift let go per frame while that foot is in the air
+    max_lock_shift_m: float = 0.25  # a foot is never held further than this from where it was generated
+    lock_min_knee_deg: float = 5.0  # a foot is held only as far as the leg reaches with the knee bent this much
+    lock_max_double_support: float = 0.7  # takes with both feet planted in more of their frames shuffle: not locked
 
 
 def repair_features(features: np.ndarray, config: RepairConfig | None = None) -> np.ndarray:
-    """One take's features (T, 263) with the repairs ``config`` turns on, in order: bone lengths, planted feet."""
+    """One take's features (T, 263) with the repairs ``config`` turns on, in order: bone lengths, planted feet,
+    locked feet."""
     cfg = config or RepairConfig()
     out = np.asarray(features, dtype=np.float64)
     if cfg.bone_lengths:
         out = features_with_bone_lengths(out)
     if cfg.plant_feet:
         out = plant_feet(out, cfg)
+    if cfg.lock_feet:
+        out = lock_feet(out, cfg)
     return out.astype(np.asarray(features).dtype)
 
 
@@ -97,6 +110,127 @@ def plant_feet(features: np.ndarray, config: RepairConfig | None = None) -> np.n
 
 
 LEGS = ((1, 4, 7, 10), (2, 5, 8, 11))  # hip, knee, ankle, toe
+
+
+def lock_feet(features: np.ndarray, config: RepairConfig | None = None, segments: list | None = None) -> np.ndarray:
+    """Features (T, 263) whose planted feet do not slide (a copy): each foot is shifted on the ground against the
+    slide of its planted joint (:func:`foot_hold_shifts`) and the leg reaches it by bending the knee; the root,
+    the other joints, the foot's own shape and the contact channels are unchanged. A segment (``segments``: frame
+    ranges [(start, end), ...], default the whole take) whose feet are both planted in more than
+    ``lock_max_double_support`` of its frames shuffles rather than steps: no foot is held there."""
+    cfg = config or RepairConfig()
+    f = np.asarray(features, dtype=np.float64)
+    if len(f) < 3:
+        return f.copy()
+    half_angle = _root_half_angle(f)  # (T,)
+    local = np.zeros((len(f), sk.NUM_JOINTS, 3))  # (T, 22, 3) root-relative, in the facing frame
+    local[:, 0, 1] = f[:, 3]
+    local[:, 1:] = f[:, RIC].reshape(len(f), 21, 3)
+    world = turn_about_y(-half_angle[:, None], local)  # (T, 22, 3) root-relative, in world axes
+    world[:, :, [0, 2]] += _root_ground_track(f, half_angle)[:, None]
+    stepping = np.zeros(len(f), dtype=bool)  # (T,) frames of the segments whose feet step
+    for a, b in segments or [(0, len(f))]:
+        stepping[a:b] = double_support_share(world[a:b], f[a:b, FOOT_CONTACT], cfg) <= cfg.lock_max_double_support
+    if not stepping.any():
+        return f.copy()  # the feet hardly leave the floor: holding them would only drag them along (a glide)
+    shifts = foot_hold_shifts(world, f[:, FOOT_CONTACT] * stepping[:, None], cfg)  # (T, 2, 2) per leg
+    hip, knee, ankle, toe = (list(j) for j in zip(*LEGS))  # each [left, right]
+    shift = np.zeros((len(f), 2, 3))
+    shift[:, :, [0, 2]] = shifts
+    ankle_goal = local[:, ankle] + turn_about_y(half_angle[:, None], shift)  # (T, 2, 3) back in the facing frame
+    upper = np.linalg.norm(local[:, knee] - local[:, hip], axis=-1, keepdims=True)  # (T, 2, 1)
+    lower = np.linalg.norm(local[:, ankle] - local[:, knee], axis=-1, keepdims=True)
+    knee_at, ankle_at = two_bone_ik(local[:, hip], ankle_goal, local[:, knee], upper, lower)  # (T, 2, 3) each
+    held = np.abs(shifts).max(axis=-1) > 0  # (T, 2) feet that are held: only their legs move
+    out_local = local.copy()
+    for leg in range(2):
+        rows = held[:, leg]
+        out_local[rows, knee[leg]], out_local[rows, ankle[leg]] = knee_at[rows, leg], ankle_at[rows, leg]
+        foot = local[rows, toe[leg]] - local[rows, ankle[leg]]
+        out_local[rows, toe[leg]] = ankle_at[rows, leg] + foot  # the foot keeps its shape
+    out = f.copy()
+    out[:, RIC] = out_local[:, 1:].reshape(len(f), -1)
+    return out
+
+
+def _root_ground_track(features: np.ndarray, half_angle: np.ndarray) -> np.ndarray:
+    """The root's ground position (T, 2) in world x, z, integrated from the velocity channels as recover_root does."""
+    vel = np.zeros((len(features) - 1, 3))
+    vel[:, 0], vel[:, 2] = features[:-1, 1], features[:-1, 2]
+    step = turn_about_y(-half_angle[1:], vel)[:, [0, 2]]  # (T-1, 2)
+    return np.concatenate([np.zeros((1, 2)), np.cumsum(step, axis=0)])  # (T, 2)
+
+
+def _planted(world: np.ndarray, contact: np.ndarray, cfg: RepairConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Which foot joints (T, 4: left ankle, left toe, right ankle, right toe) are planted: the contact channel is on
+    and the joint is within ``contact_height_m`` of its lowest height; and those heights (T, 4)."""
+    feet = world[:, list(FOOT_JOINTS), 1]  # (T, 4)
+    height = feet - feet.min(axis=0)
+    return (contact > 0.5) & (height < cfg.contact_height_m), height
+
+
+def double_support_share(world: np.ndarray, contact: np.ndarray, config: RepairConfig | None = None) -> float:
+    """Share of frames in which both feet (ankle or toe) are planted: real walks 0.18 (at most 0.62 over all Bandai
+    clips), walks backwards 0.33; generated walks backwards whose feet shuffle without lifting 0.9."""
+    planted, _ = _planted(world, contact, config or RepairConfig())
+    return float(((planted[:, 0] | planted[:, 1]) & (planted[:, 2] | planted[:, 3])).mean())
+
+
+def foot_hold_shifts(world: np.ndarray, contact: np.ndarray, config: RepairConfig | None = None) -> np.ndarray:
+    """Ground shifts (T, 2 legs, 2) that hold planted feet still: world joints (T, 22, 3), contact channels (T, 4).
+
+    A joint is planted where its contact channel is on and it is within ``contact_height_m`` of its lowest height.
+    Between two frames in which the toe is planted (else the ankle), the shift takes back the joint's ground
+    step, so the shifted joint stays put; while neither is planted and the ankle or the toe is lifted above
+    ``contact_height_m``, the shift decays by ``lock_release`` per frame (a foot still on the floor keeps it: letting
+    go there would slide it). Its length is capped at ``max_lock_shift_m``. Each frame's shift is then
+    shortened (:func:`_reachable_share`; the hold itself stays) until the hip reaches the shifted ankle with the
+    knee bent ``lock_min_knee_deg``: out of that reach the foot trails its hold rather than straighten the leg."""
+    cfg = config or RepairConfig()
+    feet = world[:, list(FOOT_JOINTS)]  # (T, 4, 3) left ankle, left toe, right ankle, right toe
+    planted, height = _planted(world, contact, cfg)  # (T, 4) each
+    step = np.diff(feet[:, :, [0, 2]], axis=0)  # (T-1, 4, 2) each joint's ground step into frame t
+    both = planted[1:] & planted[:-1]  # (T-1, 4) planted in frame t and the one before
+    lifted = height[1:] >= cfg.contact_height_m  # (T-1, 4) off the ground in frame t
+    keep, cap = 1.0 - cfg.lock_release, cfg.max_lock_shift_m
+    shifts = np.zeros((len(world), 2, 2))
+    for leg in range(2):
+        ankle, toe = 2 * leg, 2 * leg + 1
+        plant_step = np.where(both[:, toe, None], step[:, toe], step[:, ankle])  # (T-1, 2) what a hold takes back
+        holding = (both[:, toe] | both[:, ankle]).tolist()
+        releasing = (lifted[:, ankle] | lifted[:, toe]).tolist()  # a foot lets go in the air, not on the floor
+        x = z = 0.0  # plain floats: the recurrence runs frame by frame
+        for t, (dx, dz) in enumerate(plant_step.tolist()):
+            if holding[t]:
+                x, z = x - dx, z - dz
+            elif releasing[t]:
+                x, z = x * keep, z * keep
+            size = (x * x + z * z) ** 0.5
+            if size > cap:
+                x, z = x * cap / size, z * cap / size
+            shifts[t + 1, leg] = x, z
+    hips, knees, ankles = world[:, [1, 2]], world[:, [4, 5]], world[:, [7, 8]]  # (T, 2, 3) each
+    reach = _leg_reach(hips, knees, ankles, cfg.lock_min_knee_deg)  # (T, 2)
+    return shifts * _reachable_share(ankles - hips, shifts, reach)[..., None]  # the leg goes as far as it can
+
+
+def _leg_reach(hip: np.ndarray, knee: np.ndarray, ankle: np.ndarray, min_knee_deg: float) -> np.ndarray:
+    """The hip-to-ankle distance (...) of legs (..., 3 per joint) with their knees bent ``min_knee_deg``."""
+    upper = np.linalg.norm(knee - hip, axis=-1)
+    lower = np.linalg.norm(ankle - knee, axis=-1)
+    return np.sqrt(upper ** 2 + lower ** 2 + 2.0 * upper * lower * np.cos(np.radians(min_knee_deg)))
+
+
+def _reachable_share(to_ankle: np.ndarray, shift: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """The largest share s (...) in [0, 1] of ground shifts (..., 2: x, z) with |to_ankle + s (x, 0, z)| <= reach
+    (to_ankle (..., 3): hip to ankle), or, where the generated leg is already straighter than that, no further
+    than the generated ankle: how much of a hold the leg reaches without straightening."""
+    vv = (shift ** 2).sum(-1)
+    av = to_ankle[..., 0] * shift[..., 0] + to_ankle[..., 2] * shift[..., 1]
+    rest = np.minimum(0.0, (to_ankle ** 2).sum(-1) - reach ** 2)  # <= 0: the unshifted ankle is within reach
+    inside = vv + 2.0 * av + rest <= 0.0  # the whole shift is reachable
+    root = (-av + np.sqrt(np.maximum(av * av - vv * rest, 0.0))) / np.maximum(vv, 1e-18)
+    return np.where(inside | (vv == 0.0), 1.0, np.clip(root, 0.0, 1.0))
 
 
 def features_with_bone_lengths(features: np.ndarray, lengths: np.ndarray | None = None) -> np.ndarray:
