@@ -121,7 +121,7 @@ def main(argv=None) -> int:
                                                               for j in joints]))}
         print(f"{content} ({len(chosen)} clips)", flush=True)
         for name, r in rows[content].items():
-            print(f"  {name:32s} skating {r['skating']:.3f}  bone SD {r['bone_sd_mm']:5.1f} mm  jerk {r['jerk']:5.1f}"
+            print(f"  {name:34s} skating {r['skating']:.3f}  bone SD {r['bone_sd_mm']:5.1f} mm  jerk {r['jerk']:5.1f}"
                   f"  travel {r['travel_m']:4.2f} m  straight knee {r['straight_knee']:.3f}",
                   flush=True)
     if args.json:
