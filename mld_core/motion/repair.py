@@ -81,9 +81,7 @@ def plant_feet(features: np.ndarray, config: RepairConfig | None = None) -> np.n
         return f.copy()
     half_angle = _root_half_angle(f)  # (T,)
     offsets = _world_offsets(f, half_angle)  # (T, 4, 3)
-    vel = np.zeros((len(f) - 1, 3))
-    vel[:, 0], vel[:, 2] = f[:-1, 1], f[:-1, 2]
-    model_step = turn_about_y(-half_angle[1:], vel)[:, [0, 2]]  # (T-1, 2) world displacement t -> t+1
+    model_step = _root_steps(f, half_angle)  # (T-1, 2) world displacement t -> t+1
 
     foot_step = -(offsets[1:, :, [0, 2]] - offsets[:-1, :, [0, 2]])  # (T-1, 4, 2) root steps that plant each joint
     height = offsets[:, :, 1] - offsets[:, :, 1].min(axis=0)  # (T, 4)
@@ -153,12 +151,17 @@ def lock_feet(features: np.ndarray, config: RepairConfig | None = None, segments
     return out
 
 
-def _root_ground_track(features: np.ndarray, half_angle: np.ndarray) -> np.ndarray:
-    """The root's ground position (T, 2) in world x, z, integrated from the velocity channels as recover_root does."""
+def _root_steps(features: np.ndarray, half_angle: np.ndarray) -> np.ndarray:
+    """The root's ground steps (T-1, 2) in world x, z from frame t to t+1, as recover_root turns the velocity
+    channels."""
     vel = np.zeros((len(features) - 1, 3))
     vel[:, 0], vel[:, 2] = features[:-1, 1], features[:-1, 2]
-    step = turn_about_y(-half_angle[1:], vel)[:, [0, 2]]  # (T-1, 2)
-    return np.concatenate([np.zeros((1, 2)), np.cumsum(step, axis=0)])  # (T, 2)
+    return turn_about_y(-half_angle[1:], vel)[:, [0, 2]]
+
+
+def _root_ground_track(features: np.ndarray, half_angle: np.ndarray) -> np.ndarray:
+    """The root's ground position (T, 2) in world x, z, integrated from the velocity channels as recover_root does."""
+    return np.concatenate([np.zeros((1, 2)), np.cumsum(_root_steps(features, half_angle), axis=0)])  # (T, 2)
 
 
 def _planted(world: np.ndarray, contact: np.ndarray, cfg: RepairConfig) -> tuple[np.ndarray, np.ndarray]:
