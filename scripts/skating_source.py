@@ -37,6 +37,7 @@ from mld_core.motion import skeleton as sk  # noqa: E402
 from mld_core.motion.features import features_to_joints  # noqa: E402
 from mld_core.motion.repair import RepairConfig, features_with_bone_lengths, plant_feet, repair_features  # noqa: E402
 from mld_core.pipeline import MLDPipeline  # noqa: E402
+from mld_core.rig.fidelity import knee_bend_deg  # noqa: E402
 
 CONTENTS = ("walk", "run", "dash", "walk-back", "walk-left", "walk-right", "walk-turn-left", "walk-turn-right")
 ROOT = slice(0, 4)
@@ -52,11 +53,7 @@ def bone_sd_mm(joints: np.ndarray) -> float:
 
 def straight_knee_share(joints: np.ndarray, degrees: float = 3.0) -> float:
     """Share of frames (T, 22, 3) in which either knee is bent less than ``degrees`` (the leg straight)."""
-    bent = []
-    for hip, knee, ankle in ((1, 4, 7), (2, 5, 8)):
-        thigh, shin = joints[:, knee] - joints[:, hip], joints[:, ankle] - joints[:, knee]
-        cos = (thigh * shin).sum(-1) / (np.linalg.norm(thigh, axis=-1) * np.linalg.norm(shin, axis=-1) + 1e-12)
-        bent.append(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))  # (T,) 0 = straight
+    bent = [knee_bend_deg(joints[:, hip], joints[:, knee], joints[:, ankle]) for hip, knee, ankle in ((1, 4, 7), (2, 5, 8))]
     return float((np.minimum(*bent) < degrees).mean())
 
 

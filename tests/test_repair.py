@@ -14,6 +14,7 @@ from mld_core.motion import skeleton as sk
 from mld_core.motion.features import FOOT_CONTACT, RIC, features_to_joints, joints_to_features
 from mld_core.motion.repair import (RepairConfig, double_support_share, features_with_bone_lengths, foot_hold_shifts,
                                     lock_feet, plant_feet, repair_features, two_bone_ik)
+from mld_core.rig.fidelity import knee_bend_deg
 from mld_core.testing import tiny_model
 
 WALK = "dataset-2_walk-turn-left_normal_027"
@@ -146,12 +147,8 @@ def test_planting_keeps_the_travel_the_legs_do_not_carry(walk):
 
 def _knee_bend_deg(joints):
     """Each knee's bend (T, 2) in degrees: 0 = a straight leg."""
-    bends = []
-    for hip, knee, ankle in ((1, 4, 7), (2, 5, 8)):
-        thigh, shin = joints[:, knee] - joints[:, hip], joints[:, ankle] - joints[:, knee]
-        cos = (thigh * shin).sum(-1) / (np.linalg.norm(thigh, axis=-1) * np.linalg.norm(shin, axis=-1))
-        bends.append(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
-    return np.stack(bends, axis=1)
+    return np.stack([knee_bend_deg(joints[:, hip], joints[:, knee], joints[:, ankle])
+                     for hip, knee, ankle in ((1, 4, 7), (2, 5, 8))], axis=1)
 
 
 def test_locking_holds_the_feet_a_sliding_root_drags(walk):

@@ -79,7 +79,8 @@ def test_train_vae_then_denoiser_then_generate(folder, tmp_path):
 
     den_run = tmp_path / "mld"  # --config inline: the JSON object itself, not a file
     den_args = ["train", "denoiser", "--data", str(folder), "--vae", str(vae_run), "--out", str(den_run)]
-    assert main(den_args + ["--config", '{"lr": 1e-3,'] + ["--steps", "1"]) == 2 and not den_run.exists()
+    for bad in ('{"lr": 1e-3,', '{"lr": NaN}', '{"lr": 1e999}', '[1, 2]', str(tmp_path)):  # broken, nan, inf, a list,
+        assert main(den_args + ["--config", bad, "--steps", "1"]) == 2 and not den_run.exists()  # a folder
     assert main(den_args + ["--steps", "40", "--threads", "1", "--config", json.dumps(TINY_DEN), "--lr", "1e-3",
                             "--bf16"]) == 0
     assert json.loads((den_run / "train_config.json").read_text())["bf16"] is True

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mld_core.motion import skeleton as sk
-from mld_core.motion.features import FOOT_CONTACT, RIC, gaussian_filter1d
+from mld_core.motion.features import FOOT_CONTACT, RIC, features_to_joints, gaussian_filter1d
 from mld_core.motion.quaternion import turn_about_y
 
 FOOT_JOINTS = (7, 10, 8, 11)  # the order of the contact channels: left ankle, left toe, right ankle, right toe
@@ -124,8 +124,7 @@ def lock_feet(features: np.ndarray, config: RepairConfig | None = None, segments
     local = np.zeros((len(f), sk.NUM_JOINTS, 3))  # (T, 22, 3) root-relative, in the facing frame
     local[:, 0, 1] = f[:, 3]
     local[:, 1:] = f[:, RIC].reshape(len(f), 21, 3)
-    world = turn_about_y(-half_angle[:, None], local)  # (T, 22, 3) root-relative, in world axes
-    world[:, :, [0, 2]] += _root_ground_track(f, half_angle)[:, None]
+    world = features_to_joints(f)  # (T, 22, 3)
     stepping = np.zeros(len(f), dtype=bool)  # (T,) frames of the segments whose feet step
     for a, b in segments or [(0, len(f))]:
         stepping[a:b] = double_support_share(world[a:b], f[a:b, FOOT_CONTACT], cfg) <= cfg.lock_max_double_support
@@ -157,11 +156,6 @@ def _root_steps(features: np.ndarray, half_angle: np.ndarray) -> np.ndarray:
     vel = np.zeros((len(features) - 1, 3))
     vel[:, 0], vel[:, 2] = features[:-1, 1], features[:-1, 2]
     return turn_about_y(-half_angle[1:], vel)[:, [0, 2]]
-
-
-def _root_ground_track(features: np.ndarray, half_angle: np.ndarray) -> np.ndarray:
-    """The root's ground position (T, 2) in world x, z, integrated from the velocity channels as recover_root does."""
-    return np.concatenate([np.zeros((1, 2)), np.cumsum(_root_steps(features, half_angle), axis=0)])  # (T, 2)
 
 
 def _planted(world: np.ndarray, contact: np.ndarray, cfg: RepairConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 from mld_core.cli import UsageError
@@ -72,13 +73,25 @@ def _model_folder(value: str | None, flag: str) -> Path:
     return path
 
 
+def _no_constant(name: str):
+    raise ValueError(f"{name} is not a number a setting can take")
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"{text} is not a finite number")
+    return value
+
+
 def _overrides(args, config_class) -> dict:
     """--config: a JSON object of the stage config's own fields, written inline or in a file."""
     if args.config is None:
         return {}
     try:
-        inline = args.config.lstrip().startswith("{")
-        data = json.loads(args.config if inline else Path(args.config).read_text())
+        inline = args.config.lstrip()[:1] in ("{", "[")
+        data = json.loads(args.config if inline else Path(args.config).read_text(), parse_constant=_no_constant,
+                          parse_float=_finite_float)
     except (OSError, ValueError) as exc:
         raise UsageError(f"cannot read --config {args.config}: {exc}") from None
     if not isinstance(data, dict):
