@@ -19,6 +19,7 @@ from mld_core.models.denoiser import DenoiserConfig
 from mld_core.models.vae import VAEConfig
 from mld_core.motion.repair import RepairConfig
 from mld_core.schedulers import LCMScheduler, SchedulerConfig
+from mld_core.stepping import SteppingConfig
 
 FORMAT = "mld-core-model"
 FORMAT_VERSION = 1
@@ -80,6 +81,7 @@ class ModelConfig:
     num_inference_steps: int = 50
     skeleton: dict = field(default_factory=dict)
     repair: RepairConfig = field(default_factory=RepairConfig)  # mld_core.motion.repair, on free 263-d takes
+    stepping: SteppingConfig = field(default_factory=SteppingConfig)  # mld_core.stepping: free takes' latents step
     draft: DraftConfig | None = None  # a Draft denoiser in draft.safetensors (pipe(..., draft=True))
     provenance: dict = field(default_factory=dict)
 
@@ -88,6 +90,10 @@ class ModelConfig:
             self.repair = RepairConfig(**self.repair)
         elif not isinstance(self.repair, RepairConfig):
             raise ValueError(f"repair must be a JSON object, got {self.repair!r}")
+        if isinstance(self.stepping, dict):
+            self.stepping = SteppingConfig(**self.stepping)
+        elif not isinstance(self.stepping, SteppingConfig):
+            raise ValueError(f"stepping must be a JSON object, got {self.stepping!r}")
         if isinstance(self.vae, dict):
             self.vae = VAEConfig(**self.vae)
         if isinstance(self.denoiser, dict):
@@ -190,6 +196,7 @@ def check_config(config: ModelConfig) -> None:
     if (std <= 0).any():
         raise ValueError("std must be positive")
     _check_repair(config.repair)
+    _check_stepping(config.stepping)
     if config.draft is not None:
         _check_draft(config.draft, config.scheduler)
 
@@ -253,6 +260,20 @@ def _check_repair(repair: RepairConfig) -> None:
             raise ValueError(f"repair.{name} must be between 0 and 1, got {getattr(repair, name)!r}")
     if repair.lock_min_knee_deg >= 90:
         raise ValueError(f"repair.lock_min_knee_deg must be below 90, got {repair.lock_min_knee_deg!r}")
+
+
+def _check_stepping(stepping: SteppingConfig) -> None:
+    steps = stepping.steps
+    if isinstance(steps, bool) or not isinstance(steps, int) or not 0 <= steps <= 1000:
+        raise ValueError(f"stepping.steps must be a whole number in 0..1000, got {steps!r}")
+    for name in ("lr", "contact_height_m", "contact_softness_m", "slide_m", "velocity_weight", "turn_weight",
+                 "stride_weight", "support_weight", "prior_weight", "min_slide_share"):
+        value = getattr(stepping, name)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0:
+            raise ValueError(f"stepping.{name} must be a finite number >= 0, got {value!r}")
+    for name in ("lr", "contact_softness_m", "slide_m"):
+        if getattr(stepping, name) <= 0:
+            raise ValueError(f"stepping.{name} must be above 0")
 
 
 def save_model(model_dir: Path, config: ModelConfig, vae: torch.nn.Module, denoiser: torch.nn.Module | None = None,

@@ -32,6 +32,7 @@ from mld_core.motion.repair import RepairConfig, lock_feet, repair_features
 from mld_core.models.transformer import native_bf16, packing_available
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import DDIMScheduler, LCMScheduler
+from mld_core.stepping import keep_cost, slide_cost, sliding_share, valid_frames
 
 
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16}
@@ -223,6 +224,46 @@ class MLDPipeline:
         for i, n in enumerate(lengths.tolist()):
             feats[i, n:] = 0.0
         return feats.astype(np.float32)
+
+    def step_feet(self, z: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+        """Sampled latents z_0 (B, n, d) refined so that the takes step instead of sliding (config ``stepping``;
+        mld_core.stepping): Adam steps through the decoder on the feet's ground slide, keeping each take's root
+        velocity, turning and stride. Takes that hardly slide are returned as sampled; each row is refined on its own (a batch
+        equals single runs)."""
+        cfg = self.config.stepping
+        with torch.inference_mode(False), torch.enable_grad():
+            mean, std = (torch.tensor(a, dtype=torch.float32, device=self.device) for a in (self.mean, self.std))
+            z0 = z.detach().clone()
+
+            def joints_of(latent, n):  # (b, n, d) -> differentiable joints (b, T, 22, 3)
+                x = self.vae.decode(latent / self.config.latent_scale + self.config.latent_mean, n).float()
+                return features_to_joints(x[:, : int(n.max())] * std + mean)
+
+            sample = joints_of(z0, lengths).detach()
+            valid = valid_frames(lengths, sample.shape[1])
+            rows = torch.nonzero(sliding_share(sample, valid, cfg) >= cfg.min_slide_share).flatten()
+            if not len(rows):
+                return z
+            n = lengths[rows].clone()
+            sample, valid = sample[rows][:, : int(n.max())], valid[rows][:, : int(n.max())]
+            start = z0[rows]
+            latent = start.clone().requires_grad_(True)
+            best, best_loss = start.clone(), torch.full((len(rows),), float("inf"), device=z.device)
+            opt = torch.optim.Adam([latent], lr=cfg.lr)
+            for k in range(cfg.steps + 1):  # the last pass only scores the last step
+                with torch.set_grad_enabled(k < cfg.steps):
+                    joints = joints_of(latent, n)
+                    loss = (slide_cost(joints, valid, cfg) + keep_cost(joints, sample, valid, cfg)
+                            + cfg.prior_weight * ((latent - start) ** 2).mean(dim=(1, 2)))  # (b,)
+                better = loss.detach() < best_loss  # each row keeps its best latent: never worse than sampled
+                best[better], best_loss[better] = latent.detach()[better], loss.detach()[better]
+                if k < cfg.steps:
+                    opt.zero_grad()
+                    loss.sum().backward()  # rows independent: each row's gradient is its own loss's
+                    opt.step()
+            out = z0.clone()
+            out[rows] = best
+        return out
 
     def meet_constraints(self, z: torch.Tensor, lengths: torch.Tensor, constraints) -> np.ndarray:
         """Denormalised features (B, T, F) of the sampled latents z (B, n, d) refined to meet ``constraints``: first
@@ -454,11 +495,15 @@ class MLDPipeline:
         timings["diffusion_s"] = time.perf_counter() - t0
 
         # 5. Decode x = D(z_0); with constraints, refine z_0 and then x until they are met (see meet_constraints).
+        #    A free take's z_0 is first refined so that its feet step instead of sliding (Final only; step_feet).
         t0 = time.perf_counter()
         if constraints:
             features = self.meet_constraints(z, lengths, constraints)
             timings["constraints_s"] = time.perf_counter() - t0
         else:
+            if repair and not draft and self.config.stepping.steps and self.config.vae.feature_dim == 263:
+                z = self.step_feet(z, lengths)
+                timings["stepping_s"] = time.perf_counter() - t0
             features = self.latents_to_features(z, lengths, draft)
         timings["decode_s"] = time.perf_counter() - t0
 

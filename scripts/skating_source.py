@@ -10,9 +10,12 @@ prints the foot skating ratio (mld_core.eval.quality) and the per-take bone leng
 - ``recon pose + real root``: the reconstruction's root-relative channels under the real root channels (0-3);
 - ``real pose + recon root``: the other way round; the two say whether the root trajectory or the pose skates;
 - ``sample``: the diffusion model on the clip's first caption at the clip's length (seed = clip index), unrepaired;
-- ``one skeleton`` / ``planted fully`` / ``repaired, feet not locked`` / ``repaired (default)``:
+- ``one skeleton`` / ``planted fully`` / ``repaired, feet not locked`` / ``repaired, not stepped``:
   mld_core.motion.repair's bone lengths alone, root re-estimation from the planted feet with no travel kept, the
-  model's configured repairs without lock_feet, and with it.
+  model's configured repairs without lock_feet, and with it;
+- ``stepped`` / ``stepped, repaired (default)``: the same samples' latents refined so that their feet step
+  (MLDPipeline.step_feet, config ``stepping``), decoded as they are, then with the model's repairs: the pipeline's
+  output.
 
 Besides skating, bone length SD, jerk and travel it prints the share of frames with a straight knee (either knee
 bent less than 3 degrees), which the leg IK of lock_feet raises where it holds a foot out of the leg's reach.
@@ -96,6 +99,12 @@ def main(argv=None) -> int:
         out = pipe([c.captions[0].text for c in chosen], [n / pipe.fps for n in lengths],
                    seed=list(range(len(chosen))), repair=False)
         samples = [out.features[i, :n] for i, n in enumerate(lengths)]
+        repairs = pipe.config.repair
+        pipe.config.repair = RepairConfig(bone_lengths=False, plant_feet=False, lock_feet=False)
+        out = pipe([c.captions[0].text for c in chosen], [n / pipe.fps for n in lengths],
+                   seed=list(range(len(chosen))))  # stepped (when the model's config says so), not repaired
+        pipe.config.repair = repairs
+        stepped = [out.features[i, :n] for i, n in enumerate(lengths)]
         full = RepairConfig(bone_lengths=False, min_travel_kept=0.0)
         variants = {"real": real, "recon": recon,
                     "recon pose + real root": [swap_root(r, t) for r, t in zip(recon, real)],
@@ -106,7 +115,9 @@ def main(argv=None) -> int:
                     "sample, planted fully": [plant_feet(f, full) for f in samples],
                     "sample, repaired, feet not locked": [repair_features(f, replace(pipe.config.repair, lock_feet=False))
                                                           for f in samples],
-                    "sample, repaired (default)": [repair_features(f, pipe.config.repair) for f in samples]}
+                    "sample, repaired, not stepped": [repair_features(f, pipe.config.repair) for f in samples],
+                    "stepped": stepped,
+                    "stepped, repaired (default)": [repair_features(f, pipe.config.repair) for f in stepped]}
         rows[content] = {}
         for name, feats in variants.items():
             joints = [features_to_joints(f.astype(np.float64)) for f in feats]

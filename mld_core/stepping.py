@@ -1,0 +1,117 @@
+"""The cost that makes a sampled take step instead of slide: how far its low feet slide over the ground, plus the
+terms that keep what the sample already does (its root's velocity, its turning, its stride length, a foot on the
+floor).
+
+The pipeline (``MLDPipeline.step_feet``) takes Adam steps on a sampled latent z_0 through the VAE decoder to lower
+this cost, so the legs that carry the travel come from the decoder itself (it reconstructs stepping walks), not from
+a repair of the features. All costs are per take, on joints (B, T, 22, 3) in metres, frames beyond each take's
+length masked out by ``valid`` (B, T).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from mld_core.motion import skeleton as sk
+
+FEET = [sk.JOINT_NAMES.index(n) for n in ("left_ankle", "left_foot", "right_ankle", "right_foot")]
+TOES = [sk.JOINT_NAMES.index(n) for n in ("left_foot", "right_foot")]
+ANKLES = [sk.JOINT_NAMES.index(n) for n in ("left_ankle", "right_ankle")]
+HIPS = [sk.JOINT_NAMES.index(n) for n in ("left_hip", "right_hip")]
+GROUND = [0, 2]  # x, z
+FAR = 1e3  # metres: pushes masked frames out of every min / max
+
+
+@dataclass
+class SteppingConfig:
+    """How hard a sampled latent is pushed to step (a model folder's config.json "stepping" entry)."""
+
+    steps: int = 0  # Adam steps on z_0 through the decoder; 0: off (takes decode as sampled)
+    lr: float = 0.15
+    contact_height_m: float = 0.05  # a foot joint this close to the take's lowest toe counts as on the ground
+    contact_softness_m: float = 0.01  # ... through a sigmoid of this width (the cost stays differentiable)
+    slide_m: float = 0.025  # a ground slide per frame that costs 1 (0.5 m/s at 20 fps)
+    velocity_weight: float = 1.0  # the root's ground velocity stays the sample's (1 per cm a frame off, squared)
+    turn_weight: float = 1.0  # the hips' turn per frame stays the sample's (1 per degree a frame off, squared)
+    stride_weight: float = 1.0  # the ankles' fore-aft range may grow, not shrink (cost 1 per 5 cm short, squared)
+    support_weight: float = 1.0  # the lower foot stays within 3 cm of the floor (cost 1 per 3 cm above, squared)
+    prior_weight: float = 0.01  # the latent stays near the sample (mean squared change)
+    min_slide_share: float = 0.02  # takes with fewer sliding frame pairs than this share are left as sampled
+
+
+def valid_frames(lengths: torch.Tensor, frames: int) -> torch.Tensor:
+    """(B, T) 1.0 on each take's frames, 0.0 beyond its length."""
+    return (torch.arange(frames, device=lengths.device)[None] < lengths[:, None]).float()
+
+
+def _per_take_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """x (B, T) averaged over each take's masked frames -> (B,)."""
+    return (x * mask).sum(1) / mask.sum(1).clamp(min=1.0)
+
+
+def feet_heights(joints: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """(B, T, 4) height of the ankles and toes above the take's lowest toe."""
+    toe_y = joints[:, :, TOES, 1].amin(-1) + (1 - valid) * FAR  # (B, T)
+    floor = toe_y.amin(1)  # (B,)
+    return joints[:, :, FEET, 1] - floor[:, None, None]
+
+
+def foot_slides(joints: torch.Tensor) -> torch.Tensor:
+    """(B, T-1, 4) ground distance (m) each ankle and toe moves from one frame to the next."""
+    feet = joints[:, :, FEET][..., GROUND]  # (B, T, 4, 2)
+    return (feet[:, 1:] - feet[:, :-1]).norm(dim=-1)
+
+
+def slide_cost(joints: torch.Tensor, valid: torch.Tensor, cfg: SteppingConfig) -> torch.Tensor:
+    """(B,) mean over frame pairs and feet of (slide / slide_m)^2, weighted by how surely the foot is on the ground
+    in both frames."""
+    on_ground = torch.sigmoid((cfg.contact_height_m - feet_heights(joints, valid)) / cfg.contact_softness_m)
+    both = on_ground[:, 1:] * on_ground[:, :-1]  # (B, T-1, 4)
+    slides = (foot_slides(joints) / cfg.slide_m) ** 2
+    return _per_take_mean((both * slides).mean(-1), valid[:, 1:] * valid[:, :-1])
+
+
+def sliding_share(joints: torch.Tensor, valid: torch.Tensor, cfg: SteppingConfig) -> torch.Tensor:
+    """(B,) share of frame pairs in which a foot joint below contact height in both frames slides more than
+    slide_m: the takes worth refining."""
+    low = feet_heights(joints, valid) < cfg.contact_height_m  # (B, T, 4)
+    sliding = (low[:, 1:] & low[:, :-1] & (foot_slides(joints) > cfg.slide_m)).any(-1).float()  # (B, T-1)
+    return _per_take_mean(sliding, valid[:, 1:] * valid[:, :-1])
+
+
+def facing(joints: torch.Tensor) -> torch.Tensor:
+    """(B, T, 2) unit ground vector from the right hip to the left hip."""
+    across = (joints[:, :, HIPS[0]] - joints[:, :, HIPS[1]])[..., GROUND]
+    return across / across.norm(dim=-1, keepdim=True).clamp(min=1e-6)
+
+
+def stride(joints: torch.Tensor, across: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """(B,) range (m) of the ankles' separation along the body's forward axis (perpendicular to ``across``)."""
+    forward = torch.stack([-across[..., 1], across[..., 0]], -1)  # (B, T, 2)
+    separation = ((joints[:, :, ANKLES[0]] - joints[:, :, ANKLES[1]])[..., GROUND] * forward).sum(-1)  # (B, T)
+    return (separation - (1 - valid) * FAR).amax(1) - (separation + (1 - valid) * FAR).amin(1)
+
+
+def turn_per_frame(across: torch.Tensor) -> torch.Tensor:
+    """(B, T-1) signed angle (radians) the unit ground vectors ``across`` (B, T, 2) turn from frame to frame."""
+    a, b = across[:, :-1], across[:, 1:]
+    return torch.atan2(a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0], (a * b).sum(-1))
+
+
+def keep_cost(joints: torch.Tensor, sample: torch.Tensor, valid: torch.Tensor, cfg: SteppingConfig) -> torch.Tensor:
+    """(B,) how far the take has moved from the sampled one (joints ``sample``): its root's ground velocity and its
+    hips' turn, frame by frame (per frame, not the integrated path: a small change early would otherwise cost at
+    every later frame, which makes the cost too stiff to descend on long takes), its stride (only a shorter one
+    costs) and the lower foot's distance to the floor."""
+    pair = valid[:, 1:] * valid[:, :-1]
+    root, root0 = joints[:, :, 0, GROUND], sample[:, :, 0, GROUND]
+    velocity = (((root[:, 1:] - root[:, :-1]) - (root0[:, 1:] - root0[:, :-1])) ** 2).sum(-1) / 0.01 ** 2  # (B, T-1)
+    sample_facing = facing(sample)
+    turn = ((turn_per_frame(facing(joints)) - turn_per_frame(sample_facing)) / math.radians(1.0)) ** 2  # (B, T-1)
+    short = torch.relu(stride(sample, sample_facing, valid) - stride(joints, sample_facing, valid)) / 0.05  # (B,)
+    lifted = torch.relu(feet_heights(joints, valid).amin(-1) - 0.03) / 0.03  # (B, T)
+    return (cfg.velocity_weight * _per_take_mean(velocity, pair) + cfg.turn_weight * _per_take_mean(turn, pair)
+            + cfg.stride_weight * short ** 2 + cfg.support_weight * _per_take_mean(lifted ** 2, valid))

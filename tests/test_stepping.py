@@ -1,0 +1,172 @@
+"""Stepping (mld_core.stepping, MLDPipeline.step_feet): sampled latents refined so that takes step instead of
+sliding, keeping their path, facing and stride."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from mld_core.checkpoint import CheckpointError, load_config
+from mld_core.eval.quality import foot_skating_ratio
+from mld_core.motion.features import features_to_joints
+from mld_core.stepping import SteppingConfig, keep_cost, slide_cost, sliding_share, stride, facing, valid_frames
+from mld_core.testing import tiny_model
+
+WALK = "dataset-2_walk-turn-left_normal_027"
+ON = SteppingConfig(steps=10)
+
+
+@pytest.fixture
+def walk(fixtures):
+    joints = np.load(fixtures / "rigs" / "source_takes.npz")[f"{WALK}_joints"]
+    return torch.tensor(joints, dtype=torch.float32)[None]  # (1, T, 22, 3)
+
+
+def _drifted(joints, metres_per_frame=0.03):
+    """The whole body drifting sideways: every planted foot slides."""
+    out = joints.clone()
+    out[..., 0] += metres_per_frame * torch.arange(joints.shape[1], dtype=joints.dtype)[None, :, None]
+    return out
+
+
+def test_a_sliding_foot_costs_and_a_planted_one_hardly(walk):
+    valid = valid_frames(torch.tensor([walk.shape[1]]), walk.shape[1])
+    real, slid = slide_cost(walk, valid, ON), slide_cost(_drifted(walk), valid, ON)
+    assert float(slid) > float(real) + 0.5  # (the real walk's toes also cost a little as they push off and land)
+    assert float(sliding_share(_drifted(walk), valid, ON)) > 0.9 > 0.2 > float(sliding_share(walk, valid, ON))
+    lifted = walk.clone()
+    lifted[:, :, [7, 8, 10, 11], 1] += 0.2  # feet in the air never slide on the floor ...
+    lifted[:, 0, [10], 1] -= 0.2  # (the floor is the take's lowest toe: one stays down at frame 0)
+    assert float(slide_cost(_drifted(lifted), valid, ON)) < 0.05 * float(slid)
+
+
+def test_frames_beyond_a_take_are_ignored(walk):
+    T = walk.shape[1]
+    padded = torch.cat([walk, torch.randn(1, 30, 22, 3)], dim=1)
+    valid = valid_frames(torch.tensor([T]), T + 30)
+    np.testing.assert_allclose(slide_cost(padded, valid, ON), slide_cost(walk, valid[:, :T], ON), rtol=1e-5)
+    np.testing.assert_allclose(keep_cost(padded, padded, valid, ON), keep_cost(walk, walk, valid[:, :T], ON),
+                               rtol=1e-5, atol=1e-7)
+
+
+def _turning(joints, degrees_per_frame=1.0):
+    """The take turning on the spot about its first root position, a little more every frame."""
+    angle = torch.deg2rad(torch.arange(joints.shape[1], dtype=joints.dtype) * degrees_per_frame)[None, :, None]
+    x, z = joints[..., 0] - joints[:, :1, :1, 0], joints[..., 2] - joints[:, :1, :1, 2]
+    out = joints.clone()
+    out[..., 0] = joints[:, :1, :1, 0] + torch.cos(angle) * x + torch.sin(angle) * z
+    out[..., 2] = joints[:, :1, :1, 2] - torch.sin(angle) * x + torch.cos(angle) * z
+    return out
+
+
+def test_keeping_costs_only_a_changed_velocity_turn_or_a_shorter_stride(walk):
+    valid = valid_frames(torch.tensor([walk.shape[1]]), walk.shape[1])
+    cfg = replace(ON, support_weight=0.0)
+    assert abs(float(keep_cost(walk, walk, valid, cfg))) < 1e-6
+    only = {name: replace(cfg, **{w: 0.0 for w in ("velocity_weight", "turn_weight", "stride_weight") if w != name})
+            for name in ("velocity_weight", "turn_weight", "stride_weight")}
+    drifted = _drifted(walk, 0.02)  # 2 cm a frame sideways: (2 cm)^2 off in every frame
+    assert float(keep_cost(drifted, walk, valid, only["velocity_weight"])) == pytest.approx(4.0, rel=1e-3)
+    assert abs(float(keep_cost(drifted, walk, valid, only["turn_weight"]))) < 1e-6
+    turning = _turning(walk, 2.0)  # 2 degrees a frame more: (2 degrees)^2 off in every frame
+    assert float(keep_cost(turning, walk, valid, only["turn_weight"])) == pytest.approx(4.0, rel=1e-2)
+    across = facing(walk)
+    longer, shorter = walk.clone(), walk.clone()
+    for joints, scale in ((longer, 1.5), (shorter, 0.5)):  # the legs' fore-aft spread around the pelvis
+        joints[:, :, [7, 8]] = walk[:, :, [0]] + scale * (walk[:, :, [7, 8]] - walk[:, :, [0]])
+    strides = [float(stride(j, across, valid)) for j in (longer, walk, shorter)]
+    assert strides[0] > strides[1] > strides[2]
+    assert abs(float(keep_cost(longer, walk, valid, only["stride_weight"]))) < 1e-6
+    assert float(keep_cost(shorter, walk, valid, only["stride_weight"])) > 1.0
+
+
+def _pipe(tmp_path, **stepping):
+    from mld_core.pipeline import MLDPipeline
+
+    pipe = MLDPipeline.from_pretrained(tiny_model(tmp_path / "m"))
+    pipe.config.stepping = SteppingConfig(**{"steps": 10, **stepping})
+    return pipe
+
+
+def _total_cost(pipe, z, lengths):
+    cfg = pipe.config.stepping
+    with torch.inference_mode():
+        feats = torch.tensor(pipe.latents_to_features(z, lengths))
+    joints = features_to_joints(feats)
+    valid = valid_frames(lengths, joints.shape[1])
+    return slide_cost(joints, valid, cfg), joints
+
+
+@pytest.mark.parametrize("lr, gain", [(0.05, 0.9), (1.0, 1.0)])  # 1.0: too big a step to descend
+def test_stepping_lowers_the_cost_and_never_raises_a_takes(tmp_path, lr, gain):
+    pipe = _pipe(tmp_path, min_slide_share=0.0, lr=lr, steps=30)
+    cfg = pipe.config.stepping
+    z = torch.randn(3, 1, 32, generator=torch.Generator().manual_seed(0))
+    lengths = torch.tensor([60, 48, 60])
+    stepped = pipe.step_feet(z, lengths)
+    slide_before, sample = _total_cost(pipe, z, lengths)
+    slide_after, joints = _total_cost(pipe, stepped, lengths)
+    valid = valid_frames(lengths, joints.shape[1])
+    before = slide_before + keep_cost(sample, sample, valid, cfg)
+    moved = cfg.prior_weight * ((stepped - z) ** 2).mean(dim=(1, 2))
+    after = slide_after + keep_cost(joints, sample, valid, cfg) + moved
+    assert (after <= before + 1e-6).all(), (before, after)  # each row keeps its best latent, the sample included
+    assert after.sum() <= gain * before.sum() + 1e-6
+    single = pipe.step_feet(z[1:2], lengths[1:2])
+    np.testing.assert_allclose(single, stepped[1:2], atol=1e-4)  # a batch equals single runs (to float rounding)
+
+
+def test_takes_that_hardly_slide_are_left_as_sampled(tmp_path):
+    pipe = _pipe(tmp_path, min_slide_share=1.01)
+    z = torch.randn(2, 1, 32, generator=torch.Generator().manual_seed(0))
+    np.testing.assert_array_equal(pipe.step_feet(z, torch.tensor([60, 60])), z)
+
+
+def test_the_pipeline_steps_free_final_takes_only(tmp_path):
+    pipe = _pipe(tmp_path, min_slide_share=0.0, lr=0.05, steps=30)
+    kw = dict(seed=[1, 2], num_inference_steps=2)
+    on = pipe(["a walk", "a run"], 3.0, **kw)
+    assert "stepping_s" in on.timings
+    raw = pipe(["a walk", "a run"], 3.0, repair=False, **kw)
+    assert "stepping_s" not in raw.timings
+    pipe.config.stepping = replace(pipe.config.stepping, steps=0)
+    off = pipe(["a walk", "a run"], 3.0, **kw)
+    assert "stepping_s" not in off.timings
+    assert not np.allclose(on.features, off.features)
+    np.testing.assert_allclose(off.features, pipe.repair_rows(raw.features, raw.lengths.tolist()), atol=1e-5)
+
+
+def test_a_stepped_walk_backwards_of_the_bundled_model_skates_less():
+    from mld_core.pipeline import MLDPipeline
+
+    pipe = MLDPipeline.from_pretrained()
+    assert pipe.config.stepping.steps > 0
+    prompts = ["a person walks backwards", "a person dashes forward"]
+    stepped = pipe(prompts, 4.0, seed=0, num_variants=2)
+    pipe.config.stepping = replace(pipe.config.stepping, steps=0)
+    sampled = pipe(prompts, 4.0, seed=0, num_variants=2)
+    skate = [np.mean([foot_skating_ratio(o.joints[i, : o.lengths[i]]) for i in range(4)]) for o in (stepped, sampled)]
+    assert skate[0] < 0.75 * skate[1], skate
+
+
+@pytest.mark.parametrize("stepping, words", [("on", "JSON object"), ({"steps": 2.5}, "whole number"),
+                                             ({"steps": -1}, "whole number"), ({"lr": 0}, "above 0"),
+                                             ({"prior_weight": float("nan")}, ">= 0"), ({"feet": 1}, "feet")])
+def test_a_bad_stepping_entry_is_a_checkpoint_error(tmp_path, stepping, words):
+    model = tiny_model(tmp_path / "m")
+    config = json.loads((model / "config.json").read_text())
+    (model / "config.json").write_text(json.dumps({**config, "stepping": stepping}))
+    with pytest.raises(CheckpointError, match=words):
+        load_config(model)
+
+
+def test_a_model_folder_without_a_stepping_entry_does_not_step(tmp_path):
+    model = tiny_model(tmp_path / "m")
+    config = json.loads((model / "config.json").read_text())
+    config.pop("stepping", None)
+    (model / "config.json").write_text(json.dumps(config))
+    assert load_config(model).stepping.steps == 0
