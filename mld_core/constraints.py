@@ -145,6 +145,7 @@ class Constraints:
     prior_weight: float = 1e-3  # keeps latent and features near the sample: the motion stays the prompt's
     planted_weight: float = 1.0  # planted feet (the sample's contact channels) keep still while the root moves
     bone_weight: float = 10.0  # bones keep the reference skeleton's lengths (else planted feet stretch the legs)
+    slide_weight: float = 0.03  # with stepping on, the latent stage also lowers the feet's slide (stepping.slide_cost)
 
     def __bool__(self) -> bool:
         return bool(self.items)

@@ -32,7 +32,7 @@ from mld_core.motion.repair import RepairConfig, lock_feet, repair_features
 from mld_core.models.transformer import native_bf16, packing_available
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import DDIMScheduler, LCMScheduler
-from mld_core.stepping import keep_cost, slide_cost, sliding_share, valid_frames
+from mld_core.stepping import SteppingConfig, keep_cost, slide_cost, sliding_share, valid_frames
 
 
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16}
@@ -263,17 +263,21 @@ class MLDPipeline:
                 best[better], best_loss[better] = latent.detach()[better], loss.detach()[better]
                 if k < cfg.steps:
                     opt.zero_grad()
-                    loss.sum().backward()  # rows independent: each row's gradient is its own loss's
+                    # rows independent: each row's gradient is its own loss's; only the latent's (the decoder's
+                    # weights need none: that would cost about 30% more per step)
+                    loss.sum().backward(inputs=[latent])
                     opt.step()
             out = z0.clone()
             out[rows] = best
         return out
 
-    def meet_constraints(self, z: torch.Tensor, lengths: torch.Tensor, constraints) -> np.ndarray:
+    def meet_constraints(self, z: torch.Tensor, lengths: torch.Tensor, constraints,
+                         stepping: SteppingConfig | None = None) -> np.ndarray:
         """Denormalised features (B, T, F) of the sampled latents z (B, n, d) refined to meet ``constraints``: first
-        Adam steps on the latent through the decoder (the motion stays one the model makes), then on the decoded
-        features themselves with a smoothness term (what a latent of this size cannot reach exactly). All rows
-        must have one length."""
+        Adam steps on the latent through the decoder (the motion stays one the model makes; with ``stepping``, the
+        feet's ground slide costs too, so that a stepped take keeps stepping), then on the decoded features
+        themselves with a smoothness term (what a latent of this size cannot reach exactly). All rows must have
+        one length."""
         if len(set(lengths.tolist())) != 1:
             raise InputError("constraints need every motion of a call to have the same length")
         constraints.check_frames(int(lengths[0]))
@@ -292,7 +296,10 @@ class MLDPipeline:
                 opt.zero_grad()
                 joints = features_to_joints(decode(z_opt) * std + mean)  # (B, T, 22, 3), differentiable
                 loss = constraints.cost(joints) + constraints.prior_weight * ((z_opt - z0) ** 2).mean()
-                loss.backward()
+                if stepping is not None:
+                    valid = valid_frames(lengths, joints.shape[1])
+                    loss = loss + constraints.slide_weight * slide_cost(joints, valid, stepping).mean()
+                loss.backward(inputs=[z_opt])  # the latent's gradient only, not the decoder's weights'
                 opt.step()
             x0 = decode(z_opt).detach()
             contacts = (x0 * std + mean)[..., FOOT_CONTACT] > 0.5  # (B, T, 4) ankles and toes the sample plants
@@ -397,7 +404,8 @@ class MLDPipeline:
                  actions: Sequence | None = None, num_inference_steps: int | None = None,
                  guidance_scale: float | None = None, seed: int | Sequence[int] = 0, num_variants: int = 1,
                  callback: Callable[[int, int], bool | None] | None = None, unconditional: bool = False,
-                 rank: bool = False, constraints=None, repair: bool = True, draft: bool = False) -> MLDOutput:
+                 rank: bool = False, constraints=None, repair: bool = True, draft: bool = False,
+                 step: bool | None = None) -> MLDOutput:
         """Generate ``num_variants`` motions per prompt; row i*num_variants + v uses seed ``seed + v``, or
         ``seed[i] + v`` when ``seed`` is a sequence (one per prompt). Any row equals the single run with its seed. (A
         Draft in bf16: to within bf16 rounding, up to about 2 cm.) ``unconditional`` samples with the null
@@ -405,7 +413,9 @@ class MLDPipeline:
         each prompt's variants best first (mld_core.eval.quality.best_first). ``constraints`` (a
         ``mld_core.constraints.Constraints``: poses to hit, a root path, a loop) refines each sampled latent to
         meet them; ``out.residuals`` says how well each row did. ``repair`` applies the model's repairs (config
-        ``repair``: one skeleton, planted feet; mld_core.motion.repair) to free takes. ``draft`` samples with
+        ``repair``: one skeleton, planted feet; mld_core.motion.repair) to free takes. ``step`` (default: as
+        ``repair``) refines each Final take's sampled latent until its feet step (config ``stepping``); the
+        constraints are then met with the feet's slide in their cost. ``draft`` samples with
         the model's Draft denoiser (config ``draft``: a few consistency steps, the last of them guided steps of
         the model's own denoiser, and its own text encoder when it has one; about 10x faster)."""
         if self.denoiser is None:
@@ -499,16 +509,19 @@ class MLDPipeline:
         timings["diffusion_s"] = time.perf_counter() - t0
 
         # 5. Decode x = D(z_0); with constraints, refine z_0 and then x until they are met (see meet_constraints).
-        #    A free take's z_0 is first refined so that its feet step instead of sliding (Final only; step_feet).
+        #    A Final take's z_0 is first refined so that its feet step instead of sliding (step_feet), free or
+        #    constrained.
         t0 = time.perf_counter()
+        stepped = ((repair if step is None else step) and not draft and self.config.stepping.steps > 0
+                   and self.config.vae.feature_dim == 263)
+        if stepped:
+            z = self.step_feet(z, lengths)
+            timings["stepping_s"] = time.perf_counter() - t0
+            t0 = time.perf_counter()  # decode_s below: the decoding alone (AITS), or meeting the constraints
         if constraints:
-            features = self.meet_constraints(z, lengths, constraints)
+            features = self.meet_constraints(z, lengths, constraints, self.config.stepping if stepped else None)
             timings["constraints_s"] = time.perf_counter() - t0
         else:
-            if repair and not draft and self.config.stepping.steps and self.config.vae.feature_dim == 263:
-                z = self.step_feet(z, lengths)
-                timings["stepping_s"] = time.perf_counter() - t0
-                t0 = time.perf_counter()  # decode_s below: the decoding alone (AITS)
             features = self.latents_to_features(z, lengths, draft)
         timings["decode_s"] = time.perf_counter() - t0
 
@@ -539,8 +552,8 @@ class MLDPipeline:
         ``overlap_s`` seconds are constrained to the previous one's last pose, by refining the features only: the
         latent stays the segment prompt's sample; the features cross-fade there); the root velocities join, so
         position and facing carry over and each segment moves as its prompt says. Segment k uses seed ``seed + k``
-        and is repaired as a free take of its own. Returns one row; ``timings["segments"]`` holds each segment's
-        first frame."""
+        and is stepped and repaired as a free take of its own. Returns one row; ``timings["segments"]`` holds each
+        segment's first frame."""
         from mld_core.constraints import Constraints, Continuation
 
         t_start = time.perf_counter()
@@ -549,15 +562,16 @@ class MLDPipeline:
             raise InputError("a sequence needs at least one (prompt, seconds) segment")
         overlap = int(round(overlap_s * self.config.fps))
         repair = kwargs.pop("repair", True)  # per segment, once they are joined (below)
-        first = self(segments[0][0], segments[0][1], seed=seed, repair=False, **kwargs)
+        step = kwargs.pop("step", repair)  # each segment's sample, before it is joined
+        first = self(segments[0][0], segments[0][1], seed=seed, repair=False, step=step, **kwargs)
         features = first.features[0, : int(first.lengths[0])]  # (T, F)
         starts, residuals = [0], []
         for k, (prompt, seconds) in enumerate(segments[1:], start=1):
             tail = features_to_joints(features[-overlap:])  # the last frames, in their own frame
             # the pose only (no planted-feet term: that would hold the root back where the legs do not carry it)
             join = Constraints([Continuation(tail)], steps=0, planted_weight=0.0)
-            out = self(prompt, seconds + overlap / self.config.fps, seed=seed + k, repair=False, constraints=join,
-                       **kwargs)
+            out = self(prompt, seconds + overlap / self.config.fps, seed=seed + k, repair=False, step=step,
+                       constraints=join, **kwargs)
             residuals += out.residuals[0]
             starts.append(len(features) - overlap)
             new = out.features[0, : int(out.lengths[0])]

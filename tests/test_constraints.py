@@ -172,7 +172,7 @@ def test_a_walk_on_a_path_keeps_its_legs_and_its_footing():  # the bundled model
 
     pipe = MLDPipeline.from_pretrained()
     path = RootPath([0, 79], np.array([[0.0, 0.0], [0.0, 4.8]]))  # 1.2 m/s straight ahead for 4 s
-    pipe.config.stepping = replace(pipe.config.stepping, steps=0)  # constrained takes are not stepped: compare with
+    pipe.config.stepping = replace(pipe.config.stepping, steps=0)  # the constraints alone (no stepping): compare with
     free = pipe("a person walks forward", seconds=4, seed=0, num_variants=2)  # free takes sampled the same way
     out = pipe("a person walks forward", seconds=4, seed=0, num_variants=2, constraints=Constraints([path]))
     assert all(met for row in out.residuals for _, _, met in row)

@@ -120,6 +120,24 @@ def test_stepping_lowers_the_cost_and_never_raises_a_takes(tmp_path, lr, gain):
     np.testing.assert_allclose(single, stepped[1:2], atol=1e-4)  # a batch equals single runs (to float rounding)
 
 
+def test_constrained_takes_and_sequence_segments_are_stepped_too(tmp_path):
+    from mld_core.constraints import Constraints, RootPath
+
+    pipe = _pipe(tmp_path, min_slide_share=0.0, lr=0.05)
+    path = Constraints([RootPath([0, 39], np.array([[0.0, 0.0], [0.0, 1.0]]))], steps=2, feature_steps=2)
+    kw = dict(seed=1, num_inference_steps=2, repair=False)
+    stepped = pipe("a walk", 2.0, constraints=path, step=True, **kw)
+    assert "stepping_s" in stepped.timings
+    assert "stepping_s" not in pipe("a walk", 2.0, constraints=path, **kw).timings  # step follows repair
+    no_slide = pipe("a walk", 2.0, constraints=replace(path, slide_weight=0.0), step=True, **kw)
+    assert not np.allclose(stepped.features, no_slide.features)  # the feet's slide is in the constraints' cost
+    segments = [("a walk", 2.0), ("a run", 2.0)]
+    on, off = (pipe.sequence(segments, step=s, **kw) for s in (True, False))
+    assert not np.allclose(on.features, off.features)
+    one = pipe.sequence(segments[:1], step=True, **kw)  # a sequence of one segment is its free take, stepped
+    np.testing.assert_array_equal(one.features[0], pipe("a walk", 2.0, step=True, **kw).features[0])
+
+
 def test_takes_that_hardly_slide_are_left_as_sampled(tmp_path):
     pipe = _pipe(tmp_path, min_slide_share=1.01)
     z = torch.randn(2, 1, 32, generator=torch.Generator().manual_seed(0))
@@ -151,6 +169,26 @@ def test_a_stepped_walk_backwards_of_the_bundled_model_skates_less():
     sampled = pipe(prompts, 4.0, seed=0, num_variants=2)
     skate = [np.mean([foot_skating_ratio(o.joints[i, : o.lengths[i]]) for i in range(4)]) for o in (stepped, sampled)]
     assert skate[0] < 0.75 * skate[1], skate
+
+
+@pytest.mark.slow
+def test_walks_on_a_path_walk_cycles_and_sequences_of_the_bundled_model_skate_less_stepped():
+    from mld_core.constraints import Constraints, Loop, RootPath
+    from mld_core.pipeline import MLDPipeline
+
+    pipe = MLDPipeline.from_pretrained()
+    path = Constraints([RootPath([0, 79], np.array([[0.0, 0.0], [0.0, 4.8]]))])  # 1.2 m/s straight ahead for 4 s
+    segments = [("a person walks forward", 3.0), ("a person turns left and walks", 3.0)]
+    skate = {}
+    for step in (True, False):
+        on_path = pipe("a person walks forward", 4.0, seed=0, num_variants=4, constraints=path, step=step)
+        cycles = pipe("a person walks forward", 2.0, seed=0, num_variants=4, constraints=Constraints([Loop()]),
+                      step=step)
+        assert all(met for out in (on_path, cycles) for row in out.residuals for _, _, met in row)
+        sequences = [pipe.sequence(segments, seed=seed, step=step).joints[0] for seed in (0, 1)]
+        skate[step] = np.array([np.mean([foot_skating_ratio(j) for j in takes])
+                                for takes in (on_path.joints, cycles.joints, sequences)])
+    assert (skate[True] < 0.8 * skate[False]).all(), skate
 
 
 @pytest.mark.parametrize("stepping, words", [("on", "JSON object"), ({"steps": 2.5}, "whole number"),
