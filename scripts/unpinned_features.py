@@ -32,15 +32,7 @@ def unpinned_features(joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     pos = F._canonicalise(F.uniform_skeleton(joints.astype(np.float64)))
     smoothed = F.normalize(F.gaussian_filter1d(F._forward(pos, hip_sign=-1.0), F.FACING_SMOOTH_SIGMA))[:1]  # (1, 3)
     pos = F.qrot(F.qbetween(smoothed, F._FORWARD[None])[:, None], pos)  # frame 0's smoothed facing along +Z
-    root_quat = F._smoothed_root_quat(pos)  # (T, 4); frame 0 is now the identity by itself
-    root_rot_vel = F._root_velocity_half_angle(root_quat)  # (T-1, 1)
-    root_lin_vel = F.qrot(root_quat[1:], pos[1:, 0] - pos[:-1, 0])[:, [0, 2]]  # (T-1, 2)
-    ric = F._root_relative(pos, root_quat)[:-1, 1:].reshape(len(pos) - 1, -1)  # (T-1, 63)
-    rot6d = F._ik_cont6d(pos, root_quat)[:-1].reshape(len(pos) - 1, -1)  # (T-1, 126)
-    local_vel = F.qrot(root_quat[:-1, None], pos[1:] - pos[:-1]).reshape(len(pos) - 1, -1)  # (T-1, 66)
-    feats = np.concatenate([root_rot_vel, root_lin_vel, pos[:-1, 0, 1:2], ric, rot6d, local_vel,
-                            F._foot_contacts(pos)], axis=-1)
-    return feats.astype(np.float32), pos
+    return F.features_of(pos, F._smoothed_root_quat(pos)), pos  # frame 0's root is the identity by itself
 
 
 def main(argv=None) -> int:
@@ -50,6 +42,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.out.resolve() == args.data.resolve():
         raise SystemExit("--out must differ from --data")
+    if args.out.exists() and not args.out.is_dir():
+        raise SystemExit(f"--out {args.out} is a file, not a folder")
     for sub in ("new_joint_vecs", "new_joints"):
         (args.out / sub).mkdir(parents=True, exist_ok=True)
     for name in LINKED:

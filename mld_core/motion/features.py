@@ -64,8 +64,11 @@ def joints_to_features(joints, fps: float = sk.FPS) -> np.ndarray:
     pos = canonical_joints(joints, fps)  # (T, 22, 3)
     if len(pos) < 2:
         raise ValueError(f"need at least 2 frames at {sk.FPS} fps to compute velocities, got {len(pos)}")
-    root_quat = _smoothed_root_quat(pos)  # (T, 4): world -> facing frame
+    return features_of(pos, _smoothed_root_quat(pos))  # root: world -> facing frame, (T, 4)
 
+
+def features_of(pos: np.ndarray, root_quat: np.ndarray) -> np.ndarray:
+    """Features (T-1, 263) of canonical joints (T, 22, 3) under per-frame root rotations (T, 4)."""
     root_rot_vel = _root_velocity_half_angle(root_quat)  # (T-1, 1)
     root_lin_vel = qrot(root_quat[1:], pos[1:, 0] - pos[:-1, 0])[:, [0, 2]]  # (T-1, 2)
     root_y = pos[:-1, 0, 1:2]  # (T-1, 1)
