@@ -122,6 +122,9 @@ def test_vae_fine_tunes_from_a_model_folder(tmp_path, capsys):
     from test_reliability import _h3d_folder
 
     model = tiny_model(tmp_path / "tiny")
+    config = json.loads((model / "config.json").read_text())
+    config["stepping"]["steps"], config["repair"]["plant_feet"] = 7, False  # the folder's own decoding settings
+    (model / "config.json").write_text(json.dumps(config))
     data = _h3d_folder(tmp_path / "data")
     run = tmp_path / "run"
     assert main(["train", "vae", "--data", str(data), "--out", str(run), "--steps", "1", "--init", str(model),
@@ -130,6 +133,8 @@ def test_vae_fine_tunes_from_a_model_folder(tmp_path, capsys):
     assert set(start) == set(tuned)  # the tiny architecture, not the default one
     drift = max(float((start[k].float() - tuned[k].float()).abs().max()) for k in start)
     assert drift < 1e-3, drift
+    tuned_config = json.loads((run / "config.json").read_text())  # a fine-tune keeps stepping and the repairs
+    assert (tuned_config["stepping"]["steps"], tuned_config["repair"]["plant_feet"]) == (7, False)
     capsys.readouterr()
     assert main(["train", "vae", "--data", str(data), "--out", str(tmp_path / "run2"), "--init",
                  str(tmp_path / "nowhere")]) == 2

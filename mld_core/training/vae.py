@@ -177,10 +177,16 @@ def selection_metric(record: dict, select_by: str, step: int) -> float:
 
 
 def model_config_for(cfg: VAETrainConfig, mean, std, actions: list, model_id: str) -> ModelConfig:
-    return ModelConfig(model_id=model_id, vae=cfg.vae, min_frames=cfg.min_frames, max_frames=cfg.vae.max_frames,
-                       mean=np.asarray(mean).tolist(), std=np.asarray(std).tolist(), actions=actions,
-                       skeleton=skeleton_info() if cfg.vae.feature_dim == 263 else {},
-                       provenance={"vae_training": {k: v for k, v in asdict(cfg).items() if k != "vae"}})
+    """The run's model config. A fine-tuned VAE (``cfg.init``) keeps its model folder's decoding settings, the
+    repairs and the stepping, which act on this decoder's output: a fine-tune of the bundled model still steps."""
+    config = ModelConfig(model_id=model_id, vae=cfg.vae, min_frames=cfg.min_frames, max_frames=cfg.vae.max_frames,
+                         mean=np.asarray(mean).tolist(), std=np.asarray(std).tolist(), actions=actions,
+                         skeleton=skeleton_info() if cfg.vae.feature_dim == 263 else {},
+                         provenance={"vae_training": {k: v for k, v in asdict(cfg).items() if k != "vae"}})
+    if cfg.init:
+        init = load_config(Path(cfg.init))
+        config.repair, config.stepping = init.repair, init.stepping
+    return config
 
 
 def prepare_run_dir(out: Path, resume: bool) -> None:
