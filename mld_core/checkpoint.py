@@ -274,6 +274,8 @@ def _check_stepping(stepping: SteppingConfig) -> None:
     for name in ("lr", "contact_softness_m", "slide_m"):
         if getattr(stepping, name) <= 0:
             raise ValueError(f"stepping.{name} must be above 0")
+    if not isinstance(stepping.keep_if_less_skating, bool):
+        raise ValueError(f"stepping.keep_if_less_skating must be true or false, got {stepping.keep_if_less_skating!r}")
 
 
 def save_model(model_dir: Path, config: ModelConfig, vae: torch.nn.Module, denoiser: torch.nn.Module | None = None,

@@ -271,6 +271,28 @@ class MLDPipeline:
             out[rows] = best
         return out
 
+    def keep_less_skating(self, sampled: torch.Tensor, stepped: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+        """Per free take, its stepped latent (B, n, d) unless the take, decoded and repaired, skates more than its
+        sampled latent decoded and repaired; then the sampled one (config ``stepping.keep_if_less_skating``).
+        Stepping lowers the slide of the unrepaired feet; some samples' feet the repairs plant better unstepped."""
+        from mld_core.eval.quality import foot_skating_ratio
+
+        rows = torch.nonzero((stepped != sampled).flatten(1).any(1)).flatten()
+        if not len(rows):
+            return stepped
+        n = lengths[rows].tolist()
+
+        def skating(z: torch.Tensor) -> np.ndarray:  # (b,) the repaired takes' foot skating ratios
+            with torch.inference_mode():
+                features = self.latents_to_features(z, lengths[rows])
+            joints = self.joints_from_features(self.repair_rows(features, n), n)
+            return np.array([foot_skating_ratio(j[:k], self.config.fps) for j, k in zip(joints, n)])
+
+        worse = torch.as_tensor(skating(stepped[rows]) > skating(sampled[rows]))
+        out = stepped.clone()
+        out[rows[worse]] = sampled[rows[worse]]
+        return out
+
     def meet_constraints(self, z: torch.Tensor, lengths: torch.Tensor, constraints,
                          stepping: SteppingConfig | None = None) -> np.ndarray:
         """Denormalised features (B, T, F) of the sampled latents z (B, n, d) refined to meet ``constraints``: first
@@ -510,12 +532,14 @@ class MLDPipeline:
 
         # 5. Decode x = D(z_0); with constraints, refine z_0 and then x until they are met (see meet_constraints).
         #    A Final take's z_0 is first refined so that its feet step instead of sliding (step_feet), free or
-        #    constrained.
+        #    constrained; a free one keeps the sample where that, repaired, skates less (keep_less_skating).
         t0 = time.perf_counter()
         stepped = ((repair if step is None else step) and not draft and self.config.stepping.steps > 0
                    and self.config.vae.feature_dim == 263)
         if stepped:
-            z = self.step_feet(z, lengths)
+            sampled, z = z, self.step_feet(z, lengths)
+            if self.config.stepping.keep_if_less_skating and repair and not constraints:
+                z = self.keep_less_skating(sampled, z, lengths)
             timings["stepping_s"] = time.perf_counter() - t0
             t0 = time.perf_counter()  # decode_s below: the decoding alone (AITS), or meeting the constraints
         if constraints:

@@ -158,6 +158,48 @@ def test_the_pipeline_steps_free_final_takes_only(tmp_path):
     np.testing.assert_allclose(off.features, pipe.repair_rows(raw.features, raw.lengths.tolist()), atol=1e-5)
 
 
+def _repaired_skating(pipe, features, lengths):
+    """Each take's foot skating ratio once the features (not yet repaired) are repaired."""
+    n = lengths.tolist()
+    joints = pipe.joints_from_features(pipe.repair_rows(features, n), n)
+    return np.array([foot_skating_ratio(j[:k], pipe.config.fps) for j, k in zip(joints, n)])
+
+
+def test_a_take_keeps_whichever_latent_skates_less_once_repaired(tmp_path):
+    pipe = _pipe(tmp_path)
+    lengths = torch.tensor([60, 48, 60, 40, 60, 52])
+    sampled = torch.randn(6, 1, 32, generator=torch.Generator().manual_seed(0))
+    other = sampled + 2.0 * torch.randn(6, 1, 32, generator=torch.Generator().manual_seed(1))
+    other[2] = sampled[2]  # a take stepping left as sampled
+    kept = pipe.keep_less_skating(sampled, other, lengths)
+    with torch.inference_mode():
+        skate = {name: _repaired_skating(pipe, pipe.latents_to_features(z, lengths), lengths)
+                 for name, z in (("sampled", sampled), ("other", other), ("kept", kept))}
+    took_other = (skate["other"] <= skate["sampled"])
+    assert took_other.any() and not took_other.all(), skate  # both outcomes occur in this batch
+    for i in range(6):
+        np.testing.assert_array_equal(kept[i], other[i] if took_other[i] else sampled[i])
+    np.testing.assert_array_equal(skate["kept"], np.minimum(skate["sampled"], skate["other"]))
+    single = pipe.keep_less_skating(sampled[3:5], other[3:5], lengths[3:5])
+    np.testing.assert_array_equal(single, kept[3:5])  # a batch equals single runs
+
+
+def test_the_pipeline_keeps_a_sample_that_skates_less_only_when_asked(tmp_path):
+    pipe = _pipe(tmp_path, min_slide_share=0.0, lr=0.5, steps=30)
+    kw = dict(seed=list(range(8)), num_inference_steps=2)
+    prompts = ["a walk", "a run", "a dash", "a walk"] * 2
+    stepped = pipe(prompts, 3.0, **kw)
+    pipe.config.stepping = replace(pipe.config.stepping, keep_if_less_skating=True)
+    kept = pipe(prompts, 3.0, **kw)
+    sampled = pipe(prompts, 3.0, step=False, **kw)
+    skate = {name: np.array([foot_skating_ratio(j[:k], pipe.config.fps) for j, k in zip(o.joints, o.lengths)])
+             for name, o in (("stepped", stepped), ("kept", kept), ("sampled", sampled))}  # (repaired takes)
+    assert (skate["sampled"] < skate["stepped"]).any() and (skate["stepped"] < skate["sampled"]).any(), skate
+    np.testing.assert_allclose(skate["kept"], np.minimum(skate["stepped"], skate["sampled"]), atol=1e-9)
+    for i in range(8):
+        assert np.allclose(kept.features[i], stepped.features[i]) or np.allclose(kept.features[i], sampled.features[i])
+
+
 def test_a_stepped_walk_backwards_of_the_bundled_model_skates_less():
     from mld_core.pipeline import MLDPipeline
 
@@ -193,7 +235,8 @@ def test_walks_on_a_path_walk_cycles_and_sequences_of_the_bundled_model_skate_le
 
 @pytest.mark.parametrize("stepping, words", [("on", "JSON object"), ({"steps": 2.5}, "whole number"),
                                              ({"steps": -1}, "whole number"), ({"lr": 0}, "above 0"),
-                                             ({"prior_weight": float("nan")}, ">= 0"), ({"feet": 1}, "feet")])
+                                             ({"prior_weight": float("nan")}, ">= 0"), ({"feet": 1}, "feet"),
+                                             ({"keep_if_less_skating": "yes"}, "true or false")])
 def test_a_bad_stepping_entry_is_a_checkpoint_error(tmp_path, stepping, words):
     model = tiny_model(tmp_path / "m")
     config = json.loads((model / "config.json").read_text())
