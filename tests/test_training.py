@@ -135,6 +135,13 @@ def test_vae_fine_tunes_from_a_model_folder(tmp_path, capsys):
     assert drift < 1e-3, drift
     tuned_config = json.loads((run / "config.json").read_text())  # a fine-tune keeps stepping and the repairs
     assert (tuned_config["stepping"]["steps"], tuned_config["repair"]["plant_feet"]) == (7, False)
+    from mld_core.checkpoint import load_config
+    from mld_core.training.vae import VAETrainConfig, train_vae
+
+    (run / "config.json").unlink()  # a resumed fine-tune whose first sitting wrote no config yet
+    train_vae(VAETrainConfig(data=str(data), out=str(run), steps=3, lr=1e-5, vae=load_config(model).vae,
+                             init=str(model)), True)
+    assert (load_config(run).stepping.steps, load_config(run).repair.plant_feet) == (7, False)
     capsys.readouterr()
     assert main(["train", "vae", "--data", str(data), "--out", str(tmp_path / "run2"), "--init",
                  str(tmp_path / "nowhere")]) == 2

@@ -176,16 +176,16 @@ def selection_metric(record: dict, select_by: str, step: int) -> float:
     return record["val_mpjpe_mm"]
 
 
-def model_config_for(cfg: VAETrainConfig, mean, std, actions: list, model_id: str) -> ModelConfig:
-    """The run's model config. A fine-tuned VAE (``cfg.init``) keeps its model folder's decoding settings, the
-    repairs and the stepping, which act on this decoder's output: a fine-tune of the bundled model still steps."""
+def model_config_for(cfg: VAETrainConfig, mean, std, actions: list, model_id: str,
+                     keep_from: ModelConfig | None = None) -> ModelConfig:
+    """The run's model config. A fine-tuned VAE keeps the decoding settings of ``keep_from`` (the model folder it
+    started from), the repairs and the stepping, which act on its output: a fine-tune of the bundled model steps."""
     config = ModelConfig(model_id=model_id, vae=cfg.vae, min_frames=cfg.min_frames, max_frames=cfg.vae.max_frames,
                          mean=np.asarray(mean).tolist(), std=np.asarray(std).tolist(), actions=actions,
                          skeleton=skeleton_info() if cfg.vae.feature_dim == 263 else {},
                          provenance={"vae_training": {k: v for k, v in asdict(cfg).items() if k != "vae"}})
-    if cfg.init:
-        init = load_config(Path(cfg.init))
-        config.repair, config.stepping = init.repair, init.stepping
+    if keep_from is not None:
+        config.repair, config.stepping = keep_from.repair, keep_from.stepping
     return config
 
 
@@ -207,12 +207,15 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
     setup_torch(cfg.seed, cfg.threads)
     mean, std = load_mean_std(cfg.data)
     mean, std = np.asarray(mean, np.float32), np.asarray(std, np.float32)
-    if cfg.init and not resume:  # fine-tuning: the model folder's architecture, then its weights (below)
-        cfg.vae = load_config(Path(cfg.init)).vae
+    init = load_config(Path(cfg.init)) if cfg.init else None  # fine-tuning: the model folder's config,
+    if init is not None and not resume:  # its architecture, then its weights (below)
+        cfg.vae = init.vae
         if cfg.vae.feature_dim != int(mean.shape[0]):
             raise ValueError(f"--init {cfg.init} works on {cfg.vae.feature_dim}-d features, {cfg.data} has "
                              f"{int(mean.shape[0])}")
     cfg.vae.feature_dim = int(mean.shape[0])
+    # the repairs and stepping the run's model keeps: its first sitting's when resumed, else the fine-tuned folder's
+    keep_from = load_config(out) if resume and (out / "config.json").is_file() else init
     train = load_split(cfg.data, "train")
     val = load_split(cfg.data, "val")
     if not train:
@@ -220,7 +223,7 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
     rng = np.random.default_rng(cfg.seed)
     val = [val[i] for i in sorted(rng.choice(len(val), size=min(cfg.val_clips, len(val)), replace=False))] if val else []
     vae = MotionVAE(cfg.vae)
-    if cfg.init and not resume:
+    if init is not None and not resume:
         load_weights(Path(cfg.init) / "vae.safetensors", vae)
     opt = torch.optim.AdamW(vae.parameters(), lr=cfg.lr, weight_decay=0.0)
     step, extra = (load_train_state(out, vae, opt) if resume else (0, {}))
@@ -265,7 +268,7 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
             metric = selection_metric(record, cfg.select_by, step)
             if metric <= best or not val:
                 best = metric
-                config = model_config_for(cfg, mean, std, actions, model_id=f"{out.name}-vae")
+                config = model_config_for(cfg, mean, std, actions, f"{out.name}-vae", keep_from)
                 config.provenance["vae_val_mpjpe_mm"] = record.get("val_mpjpe_mm")
                 config.provenance["vae_val_global_mpjpe_mm"] = record.get("val_global_mpjpe_mm")
                 config.provenance["vae_steps"] = step
@@ -276,5 +279,6 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
     log.close()
     if not (out / "config.json").exists():
         save_weights(out / "vae.safetensors", vae)
-        save_json(out / "config.json", model_config_for(cfg, mean, std, actions, f"{out.name}-vae").to_dict())
+        config = model_config_for(cfg, mean, std, actions, f"{out.name}-vae", keep_from)
+        save_json(out / "config.json", config.to_dict())
     return out
