@@ -170,11 +170,13 @@ class Constraints:
 
 def planted_foot_speed(joints: torch.Tensor, contacts: torch.Tensor) -> torch.Tensor:
     """Mean squared ground speed (m/frame)^2 of the ankles and toes while ``contacts`` (B, T, 4: left ankle, left
-    toe, right ankle, right toe) says they are planted; joints (B, T, 22, 3)."""
+    toe, right ankle, right toe) says they are planted, per take, averaged over the takes (each take's share does
+    not depend on the others': a batch equals single runs); joints (B, T, 22, 3)."""
     feet = joints[:, :, [7, 10, 8, 11]][..., [0, 2]]  # (B, T, 4, 2)
     step = feet[:, 1:] - feet[:, :-1]  # (B, T-1, 4, 2)
     planted = (contacts[:, 1:] & contacts[:, :-1]).to(joints.dtype)  # (B, T-1, 4)
-    return ((step ** 2).sum(-1) * planted).sum() / planted.sum().clamp(min=1.0)
+    per_take = ((step ** 2).sum(-1) * planted).sum(dim=(1, 2)) / planted.sum(dim=(1, 2)).clamp(min=1.0)  # (B,)
+    return per_take.mean()
 
 
 def bone_stretch(joints: torch.Tensor) -> torch.Tensor:

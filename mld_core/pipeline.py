@@ -293,6 +293,30 @@ class MLDPipeline:
         out[rows[worse]] = sampled[rows[worse]]
         return out
 
+    def keep_less_skating_met(self, sampled: torch.Tensor, stepped: torch.Tensor, features: np.ndarray,
+                              lengths: torch.Tensor, constraints) -> np.ndarray:
+        """Per constrained take, ``features`` (B, T, F: the constraints met from its stepped latent) unless the
+        constraints met from its sampled latent (B, n, d) without the slide cost meet as many of them and skate
+        less; then those (config ``stepping.keep_if_less_skating``). Every take is met twice: even one whose
+        latent stepping left as sampled was met with the feet's slide in the cost."""
+        n = int(lengths[0])
+        unstepped = self.meet_constraints(sampled, lengths, constraints)  # (B, T, F)
+        out = features.copy()
+        for i in range(len(features)):
+            (met_s, skate_s), (met_u, skate_u) = (self._met_and_skating(f[:n], constraints)
+                                                  for f in (features[i], unstepped[i]))
+            if met_u >= met_s and skate_u < skate_s:
+                out[i] = unstepped[i]
+        return out
+
+    def _met_and_skating(self, features: np.ndarray, constraints) -> tuple[int, float]:
+        """A take's (number of constraints met, foot skating ratio); features (T, F)."""
+        from mld_core.eval.quality import foot_skating_ratio
+
+        joints = self.joints_from_features(features[None], [len(features)])[0]  # (T, 22, 3)
+        met = sum(bool(ok) for _, _, ok in constraints.residuals(joints))
+        return met, foot_skating_ratio(joints, self.config.fps)
+
     def meet_constraints(self, z: torch.Tensor, lengths: torch.Tensor, constraints,
                          stepping: SteppingConfig | None = None) -> np.ndarray:
         """Denormalised features (B, T, F) of the sampled latents z (B, n, d) refined to meet ``constraints``: first
@@ -321,7 +345,9 @@ class MLDPipeline:
                 if stepping is not None:
                     valid = valid_frames(lengths, joints.shape[1])
                     loss = loss + constraints.slide_weight * slide_cost(joints, valid, stepping).mean()
-                loss.backward(inputs=[z_opt])  # the latent's gradient only, not the decoder's weights'
+                # x B: every term is a mean over the takes, so each take's gradient is its own cost's, whatever the
+                # batch (a batch equals single runs); the latent's gradient only, not the decoder's weights'
+                (loss * len(z0)).backward(inputs=[z_opt])
                 opt.step()
             x0 = decode(z_opt).detach()
             contacts = (x0 * std + mean)[..., FOOT_CONTACT] > 0.5  # (B, T, 4) ankles and toes the sample plants
@@ -335,7 +361,7 @@ class MLDPipeline:
                         + constraints.prior_weight * ((x - x0) ** 2).mean()
                         + constraints.planted_weight * planted_foot_speed(joints, contacts)
                         + constraints.bone_weight * bone_stretch(joints))
-                loss.backward()
+                (loss * len(x0)).backward()  # each take's gradient its own cost's (above)
                 opt.step()
             features = (x.detach() * std + mean).cpu().numpy()
         out = np.zeros((len(features), int(lengths.max()), features.shape[-1]), np.float32)
@@ -532,7 +558,9 @@ class MLDPipeline:
 
         # 5. Decode x = D(z_0); with constraints, refine z_0 and then x until they are met (see meet_constraints).
         #    A Final take's z_0 is first refined so that its feet step instead of sliding (step_feet), free or
-        #    constrained; a free one keeps the sample where that, repaired, skates less (keep_less_skating).
+        #    constrained; a free one keeps the sample where that, repaired, skates less (keep_less_skating), a
+        #    constrained one where the sample, met without stepping, skates less and meets as much
+        #    (keep_less_skating_met).
         t0 = time.perf_counter()
         stepped = ((repair if step is None else step) and not draft and self.config.stepping.steps > 0
                    and self.config.vae.feature_dim == 263)
@@ -544,6 +572,8 @@ class MLDPipeline:
             t0 = time.perf_counter()  # decode_s below: the decoding alone (AITS), or meeting the constraints
         if constraints:
             features = self.meet_constraints(z, lengths, constraints, self.config.stepping if stepped else None)
+            if stepped and self.config.stepping.keep_if_less_skating:
+                features = self.keep_less_skating_met(sampled, z, features, lengths, constraints)
             timings["constraints_s"] = time.perf_counter() - t0
         else:
             features = self.latents_to_features(z, lengths, draft)

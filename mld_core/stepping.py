@@ -41,7 +41,8 @@ class SteppingConfig:
     prior_weight: float = 0.01  # the latent stays near the sample (mean squared change)
     min_slide_share: float = 0.02  # takes with fewer sliding frame pairs than this share are left as sampled
     keep_if_less_skating: bool = False  # a free take keeps its stepped latent only if, repaired, it skates no more
-    #                                     than its sampled latent repaired (the repairs may fix the sample better)
+    #                                     than its sampled latent repaired (the repairs may fix the sample better);
+    #                                     a constrained take, if it skates no more than the sample met unstepped
 
 
 def valid_frames(lengths: torch.Tensor, frames: int) -> torch.Tensor:

@@ -61,6 +61,27 @@ def test_root_path_and_loop(pipe):
     assert Loop().residual(free.joints[0]) > 0.05  # the free take does not loop by itself
 
 
+def test_a_constrained_batch_equals_single_runs(pipe):
+    looped = Constraints([Loop()], steps=3, feature_steps=20)
+    kw = dict(seconds=3, num_inference_steps=2, constraints=looped, step=False)
+    batch = pipe(["a person walks", "a person runs", "a person waves"], seed=[4, 5, 6], **kw)
+    single = pipe("a person runs", seed=5, **kw)
+    np.testing.assert_allclose(single.features[0], batch.features[1], atol=1e-4)  # the planted feet: per take
+
+
+def test_each_takes_planted_feet_count_on_their_own():
+    import torch
+
+    from mld_core.constraints import planted_foot_speed
+
+    joints = torch.randn(2, 10, 22, 3, generator=torch.Generator().manual_seed(0))
+    contacts = torch.zeros(2, 10, 4, dtype=torch.bool)
+    contacts[0, :, 0] = True  # one foot planted throughout in the first take, all four in the second
+    contacts[1] = True
+    singles = [planted_foot_speed(joints[i:i + 1], contacts[i:i + 1]) for i in range(2)]
+    torch.testing.assert_close(planted_foot_speed(joints, contacts), (singles[0] + singles[1]) / 2)
+
+
 def test_constraints_beyond_the_take_are_refused(pipe):
     with pytest.raises(InputError, match="reaches frame 80"):
         pipe("a person walks", seconds=3, num_inference_steps=2, constraints=Constraints([PoseKeys({80: {"head": [0, 1, 0]}})]))

@@ -200,6 +200,38 @@ def test_the_pipeline_keeps_a_sample_that_skates_less_only_when_asked(tmp_path):
         assert np.allclose(kept.features[i], stepped.features[i]) or np.allclose(kept.features[i], sampled.features[i])
 
 
+def _met_and_skating(pipe, out, constraints):
+    rows = [(sum(ok for *_, ok in constraints.residuals(j[:n])), foot_skating_ratio(j[:n], pipe.config.fps))
+            for j, n in zip(out.joints, out.lengths)]
+    return np.array([m for m, _ in rows]), np.array([s for _, s in rows])
+
+
+def test_a_constrained_take_keeps_the_unstepped_one_only_if_it_skates_less_and_meets_as_much(tmp_path):
+    from mld_core.constraints import Constraints, Loop, RootPath
+
+    pipe = _pipe(tmp_path, min_slide_share=0.0, lr=0.5, steps=30)
+    outcomes = []
+    for constraints in (Constraints([Loop()], steps=3, feature_steps=3),
+                        Constraints([RootPath([0, 59], np.array([[0.0, 0.0], [0.0, 0.3]]))], steps=3,
+                                    feature_steps=3)):
+        kw = dict(seed=list(range(8)), num_inference_steps=2, constraints=constraints)
+        prompts = ["a walk", "a run", "a dash", "a walk"] * 2
+        stepped = pipe(prompts, 3.0, **kw)
+        sampled = pipe(prompts, 3.0, step=False, **kw)
+        pipe.config.stepping = replace(pipe.config.stepping, keep_if_less_skating=True)
+        kept = pipe(prompts, 3.0, **kw)
+        pipe.config.stepping = replace(pipe.config.stepping, keep_if_less_skating=False)
+        (met_st, sk_st), (met_sa, sk_sa), (met_k, sk_k) = (_met_and_skating(pipe, o, constraints)
+                                                           for o in (stepped, sampled, kept))
+        took_sample = (met_sa >= met_st) & (sk_sa < sk_st)
+        outcomes += took_sample.tolist()
+        for i in range(8):  # each row is its stepped or its unstepped take, by the rule
+            np.testing.assert_allclose(kept.features[i], (sampled if took_sample[i] else stepped).features[i],
+                                       atol=1e-4)
+        assert (met_k >= met_st).all() and (sk_k <= sk_st).all()
+    assert any(outcomes) and not all(outcomes), outcomes  # both outcomes occur
+
+
 def test_a_stepped_walk_backwards_of_the_bundled_model_skates_less():
     from mld_core.pipeline import MLDPipeline
 
