@@ -3,10 +3,10 @@ whether the second is at least as good on each (prints a table).
 
     .venv/bin/python scripts/compare_side_accuracy.py BASE.json NEW.json [--tolerance 0.0]
 
-Both files come from ``side_accuracy.py --json`` with the same prompts (e.g. ``--prompts paraphrase --seeds 8``).
-A content is "worse" when NEW's pass rate is lower, or (locomotion contents) its skating higher, by more than
-``--tolerance``, or when NEW did not score it; the last line counts them: the gate of a new default model (issue 15)
-is none worse.
+Both files come from ``side_accuracy.py --json`` with the same prompts (e.g. ``--prompts both --seeds 16``); each
+prompt set both runs scored gets its table. A content is "worse" when NEW's pass rate is lower, or (locomotion
+contents) its skating higher, by more than ``--tolerance``, or when NEW did not score it; the last line counts them
+over all the shared prompt sets: the gate of a new default model (issue 15) is none worse.
 """
 
 from __future__ import annotations
@@ -55,16 +55,23 @@ def main(argv=None) -> int:
     if not shared:
         print(f"error: the runs share no prompt set ({', '.join(base)} against {', '.join(new)})", file=sys.stderr)
         return 2
-    rows = compare(base[shared[0]], new[shared[0]], args.tolerance)
-    print(f"prompt set {shared[0]}")
-    print(f"| content | pass {args.base.stem} | pass {args.new.stem} | skating {args.base.stem} | skating {args.new.stem} | worse |")
+    worse, total = [], 0
+    for name in shared:
+        rows = compare(base[name], new[name], args.tolerance)
+        print_table(name, rows, args.base.stem, args.new.stem)
+        worse += [r["content"] if len(shared) == 1 else f"{r['content']} ({name})" for r in rows if r["worse"]]
+        total += len(rows)
+    print(f"{len(worse)} of {total} contents worse" + (f": {', '.join(worse)}" if worse else ""))
+    return 0
+
+
+def print_table(prompt_set: str, rows: list[dict], base_name: str, new_name: str) -> None:
+    print(f"prompt set {prompt_set}")
+    print(f"| content | pass {base_name} | pass {new_name} | skating {base_name} | skating {new_name} | worse |")
     print("|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['content']} | {r['pass'][0]:.2f} | {r['pass'][1]:.2f} | {r['skating'][0]:.2f} | {r['skating'][1]:.2f} | "
               f"{'yes' if r['worse'] else ''} |")
-    worse = [r["content"] for r in rows if r["worse"]]
-    print(f"{len(worse)} of {len(rows)} contents worse" + (f": {', '.join(worse)}" if worse else ""))
-    return 0
 
 
 if __name__ == "__main__":

@@ -34,3 +34,15 @@ def test_a_content_is_worse_by_pass_rate_or_by_locomotion_skating(tmp_path, caps
     (tmp_path / "captions.json").write_text(json.dumps({"generated": {"captions@4s": {"contents": new}}}))
     assert main([str(tmp_path / "a.json"), str(tmp_path / "captions.json")]) == 2  # other prompts: no comparison
     assert "share no prompt set" in capsys.readouterr().err
+
+
+def test_every_prompt_set_both_runs_scored_is_compared(tmp_path, capsys):
+    good, bad = {"walk": {"pass_rate": 0.9, "skating": 0.1}}, {"walk": {"pass_rate": 0.5, "skating": 0.1}}
+    (tmp_path / "a.json").write_text(json.dumps({"generated": {"captions@clip": {"contents": good},
+                                                               "paraphrase@clip": {"contents": good}}}))
+    (tmp_path / "b.json").write_text(json.dumps({"generated": {"captions@clip": {"contents": good},
+                                                               "paraphrase@clip": {"contents": bad}}}))
+    assert main([str(tmp_path / "a.json"), str(tmp_path / "b.json")]) == 0
+    out = capsys.readouterr().out
+    assert "prompt set captions@clip" in out and "prompt set paraphrase@clip" in out
+    assert out.splitlines()[-1] == "1 of 2 contents worse: walk (paraphrase@clip)"
