@@ -558,7 +558,8 @@ class MLDPipeline:
 
         # 5. Decode x = D(z_0); with constraints, refine z_0 and then x until they are met (see meet_constraints).
         #    A Final take's z_0 is first refined so that its feet step instead of sliding (step_feet), free or
-        #    constrained; a free one keeps the sample where that, repaired, skates less (keep_less_skating), a
+        #    constrained; a free one keeps the sample where that, repaired, skates less (keep_less_skating: also
+        #    with repair=False and step=True, as a sequence's first segment is made, repaired once joined), a
         #    constrained one where the sample, met without stepping, skates less and meets as much
         #    (keep_less_skating_met).
         t0 = time.perf_counter()
@@ -566,7 +567,7 @@ class MLDPipeline:
                    and self.config.vae.feature_dim == 263)
         if stepped:
             sampled, z = z, self.step_feet(z, lengths)
-            if self.config.stepping.keep_if_less_skating and repair and not constraints:
+            if self.config.stepping.keep_if_less_skating and not constraints:
                 z = self.keep_less_skating(sampled, z, lengths)
             timings["stepping_s"] = time.perf_counter() - t0
             t0 = time.perf_counter()  # decode_s below: the decoding alone (AITS), or meeting the constraints

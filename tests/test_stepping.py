@@ -200,6 +200,20 @@ def test_the_pipeline_keeps_a_sample_that_skates_less_only_when_asked(tmp_path):
         assert np.allclose(kept.features[i], stepped.features[i]) or np.allclose(kept.features[i], sampled.features[i])
 
 
+def test_a_stepped_take_left_unrepaired_is_judged_as_its_repairs_would_leave_it(tmp_path):
+    pipe = _pipe(tmp_path, min_slide_share=0.0, lr=0.5, steps=30, keep_if_less_skating=True)
+    kw = dict(seed=list(range(8)), num_inference_steps=2, repair=False)  # as a sequence's first segment
+    prompts = ["a walk", "a run", "a dash", "a walk"] * 2
+    kept, sampled = pipe(prompts, 3.0, step=True, **kw), pipe(prompts, 3.0, step=False, **kw)
+    pipe.config.stepping = replace(pipe.config.stepping, keep_if_less_skating=False)
+    stepped = pipe(prompts, 3.0, step=True, **kw)
+    lengths = torch.as_tensor(kept.lengths)
+    skate = {name: _repaired_skating(pipe, o.features, lengths)
+             for name, o in (("stepped", stepped), ("kept", kept), ("sampled", sampled))}
+    assert (skate["sampled"] < skate["stepped"]).any() and (skate["stepped"] < skate["sampled"]).any(), skate
+    np.testing.assert_allclose(skate["kept"], np.minimum(skate["stepped"], skate["sampled"]), atol=1e-9)
+
+
 def _met_and_skating(pipe, out, constraints):
     rows = [(sum(ok for *_, ok in constraints.residuals(j[:n])), foot_skating_ratio(j[:n], pipe.config.fps))
             for j, n in zip(out.joints, out.lengths)]
