@@ -212,13 +212,18 @@ class Tally:
         self.opposite = 0
         self.skating = 0.0
         self.failed = defaultdict(int)
+        self.take_passed: list[int] = []  # per take, in generation order: what a paired comparison of two runs needs
+        self.take_skating: list[float] = []
 
     def add(self, joints: np.ndarray, content: str, fps: float) -> None:
-        self.skating += foot_skating_ratio(joints, fps)
+        skating = float(foot_skating_ratio(joints, fps))
+        self.skating += skating
         result = physical.classify(joints, fps)
         failed = physical.failed_checks(joints, content, result, fps)
         self.n += 1
         self.passed += not failed
+        self.take_passed.append(int(not failed))
+        self.take_skating.append(round(skating, 5))
         for name in failed:
             self.failed[name] += 1
         side = physical.side_of(content)
@@ -235,11 +240,14 @@ class Tally:
         self.side_ok += other.side_ok
         self.opposite += other.opposite
         self.skating += other.skating
+        self.take_passed += other.take_passed
+        self.take_skating += other.take_skating
         for k, v in other.failed.items():
             self.failed[k] += v
 
-    def as_dict(self) -> dict:
-        return {
+    def as_dict(self, takes: bool = False) -> dict:
+        """The content's numbers; ``takes`` adds each take's pass (0/1) and skating ratio, in generation order."""
+        out = {
             "n": self.n,
             "pass_rate": self.passed / self.n if self.n else None,
             "side_n": self.sided,
@@ -248,17 +256,32 @@ class Tally:
             "skating": self.skating / self.n if self.n else None,
             "failed_checks": dict(self.failed),
         }
+        if takes:
+            out["takes"] = {"passed": list(self.take_passed), "skating": list(self.take_skating)}
+        return out
 
 
 # ---- generation --------------------------------------------------------------------------------------------
 
 
+def failing_references(clips: dict, fps: float) -> dict[str, list[str]]:
+    """{content: ids of its clips whose own motion capture fails the content's checks}: a caption of such a clip
+    asks for a motion the checks do not call that content (e.g. an elderly "run" slower than the run check's
+    threshold), so a faithful take fails too."""
+    out = {}
+    for content, cl in clips.items():
+        out[content] = [c["id"] for c in cl
+                        if physical.failed_checks(c["joints"], content, physical.classify(c["joints"], fps), fps)]
+    return out
+
+
 def build_requests(clips: dict, modes: list[str], lengths: list, seeds: int, max_clips: int,
-                   lo: float, hi: float) -> list[dict]:
-    """One request per (content, prompt source, length mode, prompt); each is generated with ``seeds`` seeds."""
+                   lo: float, hi: float, skip_ids: frozenset = frozenset()) -> list[dict]:
+    """One request per (content, prompt source, length mode, prompt); each is generated with ``seeds`` seeds.
+    Caption requests skip the clips in ``skip_ids`` (after choosing ``max_clips``, so the other takes stay the same)."""
     reqs = []
     for content, cl in clips.items():
-        chosen = _spread(cl, max_clips)
+        chosen = [c for c in _spread(cl, max_clips) if c["id"] not in skip_ids]
         for length in lengths:
             if "captions" in modes:
                 for c in chosen:
@@ -451,6 +474,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--vae-recon", action="store_true",
                     help="also score VAE reconstructions at the clip's own length and at --seconds")
     ap.add_argument("--per-prompt", action="store_true", help="also print the pass rate of each paraphrase")
+    ap.add_argument("--valid-references", action="store_true",
+                    help="leave out the captions of test clips whose own motion fails the content's checks")
     ap.add_argument("--no-repair", action="store_true", help="generate without the model's repairs (planted feet, "
                     "one skeleton): the ablation")
     args = ap.parse_args(argv)
@@ -516,8 +541,16 @@ def main(argv: list[str] | None = None) -> int:
             modes = ["paraphrase", "captions"] if args.prompts == "both" else [args.prompts]
             if cond == "action":
                 modes = ["captions"]  # the prompt text is not used: one "action" row per clip and seed
+            skip = set()
+            if args.valid_references:
+                failing = failing_references(clips, fps)
+                report["failing_references"] = {c: ids for c, ids in failing.items() if ids}
+                skip = {i for ids in failing.values() for i in ids}
+                for c, ids in report["failing_references"].items():
+                    print(f"{c}: leaving out the captions of {len(ids)} clip(s) whose own capture fails its checks: "
+                          f"{', '.join(ids)}", file=sys.stderr)
             reqs = build_requests(clips, modes, lengths, args.seeds, args.max_clips, pipe.min_seconds,
-                                  pipe.max_seconds)
+                                  pipe.max_seconds, frozenset(skip))
             seconds += generate(pipe, reqs, args.batch, args.steps, args.guidance, fps, tallies, not args.no_repair,
                                 per_prompt)
         n = sum(t.n for per in tallies.values() for t in per.values())
@@ -526,7 +559,7 @@ def main(argv: list[str] | None = None) -> int:
         for (source, length), per in sorted(tallies.items(), key=lambda kv: (kv[0][0], str(kv[0][1]))):
             name = f"{'action' if cond == 'action' and source != 'vae-recon' else source}@" \
                    f"{'clip' if length == 'clip' else f'{length:g}s'}"
-            report["generated"][name] = {"contents": {c: t.as_dict() for c, t in per.items()},
+            report["generated"][name] = {"contents": {c: t.as_dict(takes=True) for c, t in per.items()},
                                          "overall": summarise(per, contents)}
         order = {c: k for k, c in enumerate(contents)}
         report["paraphrases"] = [

@@ -8,7 +8,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 
-from compare_side_accuracy import compare, main  # noqa: E402
+from compare_side_accuracy import compare, main, paired_z  # noqa: E402
 
 
 def _run(path: Path, contents: dict) -> Path:
@@ -27,7 +27,9 @@ def test_a_content_is_worse_by_pass_rate_or_by_locomotion_skating(tmp_path, caps
     assert {r["content"]: r["worse"] for r in compare(base, new, tolerance=0.1)} == {
         "walk": False, "wave-left-hand": False, "bow": False}
     assert main([str(_run(tmp_path / "a.json", base)), str(_run(tmp_path / "b.json", new))]) == 0
-    assert capsys.readouterr().out.splitlines()[-1] == "2 of 3 contents worse: walk, wave-left-hand"
+    out = capsys.readouterr().out.splitlines()
+    assert out[-1] == "2 of 3 contents worse (by more than 0): walk, wave-left-hand"
+    assert out[-2] == "paraphrase@4s: mean pass 0.7333 -> 0.7333, mean locomotion skating 0.3000 -> 0.3500"
     (tmp_path / "bad.json").write_text("{}")
     assert main([str(tmp_path / "a.json"), str(tmp_path / "bad.json")]) == 2
     assert capsys.readouterr().err.startswith("error: cannot read")
@@ -45,4 +47,45 @@ def test_every_prompt_set_both_runs_scored_is_compared(tmp_path, capsys):
     assert main([str(tmp_path / "a.json"), str(tmp_path / "b.json")]) == 0
     out = capsys.readouterr().out
     assert "prompt set captions@clip" in out and "prompt set paraphrase@clip" in out
-    assert out.splitlines()[-1] == "1 of 2 contents worse: walk (paraphrase@clip)"
+    assert out.splitlines()[-1] == "1 of 2 contents worse (by more than 0): walk (paraphrase@clip)"
+
+
+def _takes(passed: list[int], skating: list[float]) -> dict:
+    return {"pass_rate": sum(passed) / len(passed), "skating": sum(skating) / len(skating),
+            "takes": {"passed": passed, "skating": skating}}
+
+
+def test_paired_z_counts_only_the_takes_that_changed():
+    same = {"passed": [1, 0, 1, 1], "skating": [0.1, 0.2, 0.3, 0.4]}
+    assert paired_z(same, same) == (0.0, 0.0)
+    # 9 takes lost, 1 won: McNemar z = (9 - 1) / sqrt(10)
+    base = {"passed": [1] * 9 + [0] + [1] * 10, "skating": [0.1] * 20}
+    new = {"passed": [0] * 9 + [1] + [1] * 10, "skating": [0.1 + 0.01 * (k % 2) for k in range(20)]}
+    z_pass, z_skate = paired_z(base, new)
+    assert abs(z_pass - 8 / 10 ** 0.5) < 1e-12
+    # differences 0, 0.01, 0, 0.01 ...: mean 0.005, sample sd 0.005 * sqrt(20 / 19), z = sqrt(19)
+    assert abs(z_skate - 19 ** 0.5) < 1e-9
+    assert paired_z(new, base)[0] == -z_pass
+    assert paired_z(base, {"passed": base["passed"], "skating": [0.2] * 20})[1] == float("inf")  # all worse alike
+
+
+def test_with_z_a_content_is_worse_only_beyond_noise(tmp_path, capsys):
+    rng = [0.05 * ((7 * k) % 5) for k in range(40)]  # a fixed spread of per-take skating
+    base = {"walk": _takes([1] * 30 + [0] * 10, rng), "bow": _takes([1] * 40, [0.0] * 40)}
+    slightly = {"walk": _takes([1] * 29 + [0] * 11, [s + (0.01 if k % 3 else -0.02) for k, s in enumerate(rng)]),
+                "bow": _takes([1] * 39 + [0], [0.0] * 40)}
+    assert [r["worse"] for r in compare(base, slightly)] == [True, True]  # the raw rule counts any drop
+    rows = compare(base, slightly, z=1.96)
+    assert [r["worse"] for r in rows] == [False, False] and rows[0]["z"][0] == 1.0
+    clearly = {"walk": _takes([1] * 20 + [0] * 20, [s + 0.05 for s in rng]), "bow": base["bow"]}
+    rows = compare(base, clearly, z=1.96)
+    assert [r["worse"] for r in rows] == [True, False] and rows[0]["z"][1] == float("inf")
+    skating_only = {"walk": _takes(base["walk"]["takes"]["passed"], [s + 0.05 + 0.01 * (k % 2) for k, s in enumerate(rng)]),
+                    "bow": base["bow"]}
+    assert [r["worse"] for r in compare(base, skating_only, z=1.96)] == [True, False]
+    old = {"walk": {"pass_rate": 0.5, "skating": 0.1}, "bow": {"pass_rate": 1.0, "skating": 0.0}}  # no per-take numbers
+    assert compare(base, old, z=1.96)[0]["z"] is None and [r["worse"] for r in compare(base, old, z=1.96)] == [True, False]
+    assert main([str(_run(tmp_path / "a.json", base)), str(_run(tmp_path / "b.json", slightly)), "--z", "1.96"]) == 0
+    out = capsys.readouterr().out
+    assert "| walk | 0.75 | 0.72 | 0.100 | 0.099 | +1.0 | -0.2 |  |" in out
+    assert out.splitlines()[-1] == "0 of 2 contents worse (beyond paired z 1.96)"

@@ -405,6 +405,11 @@ def test_side_accuracy_script_end_to_end(bandai_clips, tmp_path, request, capsys
     for mode in rep["generated"].values():
         for c in mode["contents"].values():
             assert 0.0 <= c["pass_rate"] <= 1.0 and c["side_accuracy"] + c["opposite_side"] <= 1.0
+            # each take's numbers, for a paired comparison of two runs, add up to the row
+            assert len(c["takes"]["passed"]) == len(c["takes"]["skating"]) == c["n"]
+            assert sum(c["takes"]["passed"]) / c["n"] == c["pass_rate"]
+            assert sum(c["takes"]["skating"]) / c["n"] == pytest.approx(c["skating"], abs=1e-5)
+    assert "takes" not in rep["real"]["contents"]["walk-turn-left"] and "takes" not in rep["paraphrases"][0]
     assert "side" in printed
 
 
@@ -431,3 +436,23 @@ def test_a_jump_leaves_the_floor_with_the_pelvis_rising(rest):
     # A running stride's flight: feet off the floor briefly, the pelvis level: no jump.
     fast = walk(rest, (0.0, 3.0), step_s=0.7, stance=0.35)
     assert P.locomotion(fast).verdict == "run" and P.jump(fast).verdict is False
+
+
+def test_valid_references_leave_out_only_the_captions_of_clips_that_fail_their_own_checks(bandai_clips, request):
+    script = _load_script(request.config.rootpath)
+    turn, wave_clip = "dataset-2_walk-turn-left_normal_027", "dataset-2_wave-right-hand_normal_026"
+    if turn not in bandai_clips or wave_clip not in bandai_clips:
+        pytest.skip("fixture clips missing")
+    # a wave filed under walk-turn-left: its own capture does not walk and turn, so no take of its caption can pass
+    clips = {"walk-turn-left": [_test_clip("turn", bandai_clips[turn]), _test_clip("mislabelled", bandai_clips[wave_clip])]}
+    failing = script.failing_references(clips, FPS)
+    assert failing == {"walk-turn-left": ["mislabelled"]}
+    every = script.build_requests(clips, ["captions", "paraphrase"], ["clip"], 2, 16, 2.0, 9.8)
+    valid = script.build_requests(clips, ["captions", "paraphrase"], ["clip"], 2, 16, 2.0, 9.8,
+                                  frozenset(failing["walk-turn-left"]))
+    assert [r for r in every if r["prompt"] != "caption of mislabelled"] == valid
+    assert len(every) - len(valid) == 2 and sum(r["source"] == "paraphrase" for r in valid) == 4
+
+
+def _test_clip(cid: str, joints) -> dict:
+    return {"id": cid, "joints": joints, "captions": [f"caption of {cid}"], "seconds": len(joints) / FPS, "split": "test"}

@@ -1,0 +1,68 @@
+"""scripts/average_denoisers.py: a model folder whose denoiser is the weighted mean of folders sharing one VAE."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from mld_core.testing import tiny_model
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+
+from average_denoisers import main  # noqa: E402
+
+
+@pytest.fixture
+def folders(tmp_path):
+    """a and b share a's VAE and config; b's denoiser is another seed's; c has its own VAE."""
+    a, c = tiny_model(tmp_path / "a", seed=0), tiny_model(tmp_path / "c", seed=1)
+    b = tmp_path / "b"
+    shutil.copytree(a, b)
+    shutil.copyfile(c / "denoiser.safetensors", b / "denoiser.safetensors")
+    return a, b, c
+
+
+def test_the_average_is_the_weighted_mean_and_the_rest_is_the_first_folder(folders, tmp_path, capsys):
+    from mld_core.pipeline import MLDPipeline
+
+    a, b, _ = folders
+    out = tmp_path / "avg"
+    assert main([str(a), str(b), "--out", str(out), "--weights", "0.25,0.75", "--model-id", "soup"]) == 0
+    da, db, avg = (load_file(f / "denoiser.safetensors") for f in (a, b, out))
+    assert avg.keys() == da.keys() and any(not torch.equal(da[k], db[k]) for k in da)
+    for k in da:
+        assert avg[k].dtype == da[k].dtype
+        torch.testing.assert_close(avg[k], 0.25 * da[k] + 0.75 * db[k])
+    assert (out / "vae.safetensors").read_bytes() == (a / "vae.safetensors").read_bytes()
+    cfg = json.loads((out / "config.json").read_text())
+    assert cfg["model_id"] == "soup" and cfg["provenance"]["denoiser_average"] == {
+        "models": ["tiny-text", "tiny-text"], "weights": [0.25, 0.75]}
+    # weights 1, 0 give the first model's motions exactly
+    one = tmp_path / "one"
+    assert main([str(a), str(b), "--out", str(one), "--weights", "1,0"]) == 0
+    capsys.readouterr()
+    kw = dict(seconds=2.0, seed=3, num_inference_steps=2)
+    same = MLDPipeline.from_pretrained(one)(["a person walks"], **kw).joints
+    assert torch.equal(torch.as_tensor(same), torch.as_tensor(MLDPipeline.from_pretrained(a)(["a person walks"], **kw).joints))
+    other = MLDPipeline.from_pretrained(out)(["a person walks"], **kw).joints
+    assert not torch.equal(torch.as_tensor(same), torch.as_tensor(other))
+
+
+def test_folders_that_do_not_share_a_vae_or_bad_weights_are_refused_and_leave_nothing(folders, tmp_path, capsys):
+    a, b, c = folders
+    out = tmp_path / "avg"
+    assert main([str(a), str(c), "--out", str(out)]) == 2
+    assert "VAE differs" in capsys.readouterr().err and not out.exists()
+    for weights in ("0.5", "0.7,0.7", "-0.5,1.5", "x,y"):
+        assert main([str(a), str(b), "--out", str(out), f"--weights={weights}"]) == 2
+        assert capsys.readouterr().err.startswith("error: ") and not out.exists()
+    out.mkdir()
+    assert main([str(a), str(b), "--out", str(out)]) == 2
+    assert "exists" in capsys.readouterr().err and list(out.iterdir()) == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "avg", "b", "c"]  # no temporary folder left
