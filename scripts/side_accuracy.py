@@ -276,9 +276,10 @@ def failing_references(clips: dict, fps: float) -> dict[str, list[str]]:
 
 
 def build_requests(clips: dict, modes: list[str], lengths: list, seeds: int, max_clips: int,
-                   lo: float, hi: float, skip_ids: frozenset = frozenset()) -> list[dict]:
-    """One request per (content, prompt source, length mode, prompt); each is generated with ``seeds`` seeds.
-    Caption requests skip the clips in ``skip_ids`` (after choosing ``max_clips``, so the other takes stay the same)."""
+                   lo: float, hi: float, skip_ids: frozenset = frozenset(), first_seed: int = 0) -> list[dict]:
+    """One request per (content, prompt source, length mode, prompt); each is generated with ``seeds`` seeds from
+    ``first_seed`` on (another ``first_seed`` gives fresh takes of the same prompts). Caption requests skip the clips
+    in ``skip_ids`` (after choosing ``max_clips``, so the other takes stay the same)."""
     reqs = []
     for content, cl in clips.items():
         chosen = [c for c in _spread(cl, max_clips) if c["id"] not in skip_ids]
@@ -287,7 +288,7 @@ def build_requests(clips: dict, modes: list[str], lengths: list, seeds: int, max
                 for c in chosen:
                     secs = c["seconds"] if length == "clip" else float(length)
                     # one request per seed so that seed k uses caption k of the clip
-                    for k in range(seeds):
+                    for k in range(first_seed, first_seed + seeds):
                         reqs.append({"content": content, "source": "captions", "length": length,
                                      "prompt": c["captions"][k % len(c["captions"])],
                                      "seconds": float(np.clip(secs, lo, hi)), "seed": k, "variants": 1})
@@ -296,7 +297,7 @@ def build_requests(clips: dict, modes: list[str], lengths: list, seeds: int, max
                 for p, prompt in enumerate(PARAPHRASES[content]):
                     secs = own[p % len(own)] if length == "clip" else float(length)
                     reqs.append({"content": content, "source": "paraphrase", "length": length, "prompt": prompt,
-                                 "seconds": float(np.clip(secs, lo, hi)), "seed": 0, "variants": seeds})
+                                 "seconds": float(np.clip(secs, lo, hi)), "seed": first_seed, "variants": seeds})
     return reqs
 
 
@@ -460,6 +461,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--model", default=None, help="model folder (default: the bundled default model)")
     ap.add_argument("--data", required=True, help="HumanML3D-format folder with actions.json (Bandai Namco)")
     ap.add_argument("--seeds", type=int, default=4)
+    ap.add_argument("--first-seed", type=int, default=0, help="seeds run from this one (a fresh sample: e.g. 16)")
     ap.add_argument("--seconds", type=float, default=None, help="generated length (default 4 unless --clip-length)")
     ap.add_argument("--clip-length", action="store_true", help="also/instead generate at each clip's own length")
     ap.add_argument("--prompts", choices=("paraphrase", "captions", "both"), default="both")
@@ -550,7 +552,7 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"{c}: leaving out the captions of {len(ids)} clip(s) whose own capture fails its checks: "
                           f"{', '.join(ids)}", file=sys.stderr)
             reqs = build_requests(clips, modes, lengths, args.seeds, args.max_clips, pipe.min_seconds,
-                                  pipe.max_seconds, frozenset(skip))
+                                  pipe.max_seconds, frozenset(skip), args.first_seed)
             seconds += generate(pipe, reqs, args.batch, args.steps, args.guidance, fps, tallies, not args.no_repair,
                                 per_prompt)
         n = sum(t.n for per in tallies.values() for t in per.values())
@@ -568,6 +570,7 @@ def main(argv: list[str] | None = None) -> int:
             for (length, content, prompt), t in sorted(per_prompt.items(),
                                                        key=lambda kv: (order.get(kv[0][1], 0), str(kv[0][0])))]
         report.update(model=str(args.model or "default"), model_id=pipe.model_id, seeds=args.seeds,
+                      first_seed=args.first_seed,
                       repair=not args.no_repair,
                       steps=args.steps, guidance=args.guidance, max_clips=args.max_clips, generation_s=seconds)
 

@@ -48,10 +48,9 @@ def test_the_average_is_the_weighted_mean_and_the_rest_is_the_first_folder(folde
     assert main([str(a), str(b), "--out", str(one), "--weights", "1,0"]) == 0
     capsys.readouterr()
     kw = dict(seconds=2.0, seed=3, num_inference_steps=2)
-    same = MLDPipeline.from_pretrained(one)(["a person walks"], **kw).joints
-    assert torch.equal(torch.as_tensor(same), torch.as_tensor(MLDPipeline.from_pretrained(a)(["a person walks"], **kw).joints))
-    other = MLDPipeline.from_pretrained(out)(["a person walks"], **kw).joints
-    assert not torch.equal(torch.as_tensor(same), torch.as_tensor(other))
+    same, first, other = (torch.as_tensor(MLDPipeline.from_pretrained(f)(["a person walks"], **kw).joints)
+                          for f in (one, a, out))
+    assert torch.equal(same, first) and not torch.equal(same, other)
 
 
 def test_folders_that_do_not_share_a_vae_or_bad_weights_are_refused_and_leave_nothing(folders, tmp_path, capsys):

@@ -80,11 +80,12 @@ def test_with_z_a_content_is_worse_only_beyond_noise(tmp_path, capsys):
     clearly = {"walk": _takes([1] * 20 + [0] * 20, [s + 0.05 for s in rng]), "bow": base["bow"]}
     rows = compare(base, clearly, z=1.96)
     assert [r["worse"] for r in rows] == [True, False] and rows[0]["z"][1] == float("inf")
-    skating_only = {"walk": _takes(base["walk"]["takes"]["passed"], [s + 0.05 + 0.01 * (k % 2) for k, s in enumerate(rng)]),
-                    "bow": base["bow"]}
+    more = [s + 0.05 + 0.01 * (k % 2) for k, s in enumerate(rng)]
+    skating_only = {"walk": _takes(base["walk"]["takes"]["passed"], more), "bow": base["bow"]}
     assert [r["worse"] for r in compare(base, skating_only, z=1.96)] == [True, False]
     old = {"walk": {"pass_rate": 0.5, "skating": 0.1}, "bow": {"pass_rate": 1.0, "skating": 0.0}}  # no per-take numbers
-    assert compare(base, old, z=1.96)[0]["z"] is None and [r["worse"] for r in compare(base, old, z=1.96)] == [True, False]
+    rows = compare(base, old, z=1.96)
+    assert rows[0]["z"] is None and [r["worse"] for r in rows] == [True, False]
     assert main([str(_run(tmp_path / "a.json", base)), str(_run(tmp_path / "b.json", slightly)), "--z", "1.96"]) == 0
     out = capsys.readouterr().out
     assert "| walk | 0.75 | 0.72 | 0.100 | 0.099 | +1.0 | -0.2 |  |" in out

@@ -444,7 +444,8 @@ def test_valid_references_leave_out_only_the_captions_of_clips_that_fail_their_o
     if turn not in bandai_clips or wave_clip not in bandai_clips:
         pytest.skip("fixture clips missing")
     # a wave filed under walk-turn-left: its own capture does not walk and turn, so no take of its caption can pass
-    clips = {"walk-turn-left": [_test_clip("turn", bandai_clips[turn]), _test_clip("mislabelled", bandai_clips[wave_clip])]}
+    clips = {"walk-turn-left": [_test_clip("turn", bandai_clips[turn]),
+                                _test_clip("mislabelled", bandai_clips[wave_clip])]}
     failing = script.failing_references(clips, FPS)
     assert failing == {"walk-turn-left": ["mislabelled"]}
     every = script.build_requests(clips, ["captions", "paraphrase"], ["clip"], 2, 16, 2.0, 9.8)
@@ -452,7 +453,13 @@ def test_valid_references_leave_out_only_the_captions_of_clips_that_fail_their_o
                                   frozenset(failing["walk-turn-left"]))
     assert [r for r in every if r["prompt"] != "caption of mislabelled"] == valid
     assert len(every) - len(valid) == 2 and sum(r["source"] == "paraphrase" for r in valid) == 4
+    fresh = script.build_requests(clips, ["captions", "paraphrase"], ["clip"], 2, 16, 2.0, 9.8, first_seed=16)
+    assert [r["seed"] for r in every if r["source"] == "captions"] == [0, 1, 0, 1]
+    assert [r["seed"] for r in fresh if r["source"] == "captions"] == [16, 17, 16, 17]
+    assert {r["seed"] for r in fresh if r["source"] == "paraphrase"} == {16}
+    assert [{**r, "seed": 0} for r in fresh] == [{**r, "seed": 0} for r in every]  # the same prompts otherwise
 
 
 def _test_clip(cid: str, joints) -> dict:
-    return {"id": cid, "joints": joints, "captions": [f"caption of {cid}"], "seconds": len(joints) / FPS, "split": "test"}
+    return {"id": cid, "joints": joints, "captions": [f"caption of {cid}"], "seconds": len(joints) / FPS,
+            "split": "test"}
