@@ -3,6 +3,7 @@
     .venv/bin/python scripts/side_accuracy.py --model DIR --data DIR [--seeds 4] [--seconds 4] [--clip-length]
         [--prompts paraphrase|captions|both] [--contents raise-up-left-hand,...] [--max-clips 16]
         [--steps N] [--guidance G] [--batch 32] [--threads N] [--json OUT.json] [--real-only] [--vae-recon]
+        [--first-seed 0] [--valid-references]
 
 For the test-split clips of the sided contents (raise-up-*, wave-*, walk-turn-*, walk-left/right), the rare
 ones (bow, kick, walk-back, dash, bye, ...) and walk/run, it generates motions with the pipeline from
@@ -17,7 +18,12 @@ Contents with no test clip (kick, respond, slash) fall back to their clips in th
 ``--vae-recon`` also encodes each chosen clip with the model's VAE and decodes it at its own length and at
 ``--seconds`` (rows "vae-recon@..."): does a latent keep its gesture when decoded to another length? It works
 on a folder with only a VAE (then nothing is generated from text).
-Prints a table; ``--json`` writes every number. Assert nothing: a measurement, not a test.
+``--first-seed K`` runs seeds K..K+seeds-1: fresh takes of the same prompts (a confirmation on new samples).
+``--valid-references`` leaves out the captions of test clips whose own capture fails the content's checks (an
+elderly "run" slower than the run check's threshold): a faithful take of such a caption fails too.
+Prints a table; ``--json`` writes every number, with each generated take's pass (0/1) and skating ratio in
+generation order (the same order for every model), so ``scripts/compare_side_accuracy.py --z`` can pair the takes
+of two runs. Assert nothing: a measurement, not a test.
 """
 
 from __future__ import annotations
