@@ -5,10 +5,11 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
+from statistics import NormalDist
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 
-from compare_side_accuracy import compare, main, paired_z  # noqa: E402
+from compare_side_accuracy import compare, main, mcnemar_z, paired_z  # noqa: E402
 
 
 def _run(path: Path, contents: dict) -> Path:
@@ -58,11 +59,11 @@ def _takes(passed: list[int], skating: list[float]) -> dict:
 def test_paired_z_counts_only_the_takes_that_changed():
     same = {"passed": [1, 0, 1, 1], "skating": [0.1, 0.2, 0.3, 0.4]}
     assert paired_z(same, same) == (0.0, 0.0)
-    # 9 takes lost, 1 won: McNemar z = (9 - 1) / sqrt(10)
+    # 9 takes lost, 1 won: exact one-sided p = (C(10, 9) + C(10, 10)) / 2^10 = 11 / 1024, as a normal quantile
     base = {"passed": [1] * 9 + [0] + [1] * 10, "skating": [0.1] * 20}
     new = {"passed": [0] * 9 + [1] + [1] * 10, "skating": [0.1 + 0.01 * (k % 2) for k in range(20)]}
     z_pass, z_skate = paired_z(base, new)
-    assert abs(z_pass - 8 / 10 ** 0.5) < 1e-12
+    assert abs(z_pass - NormalDist().inv_cdf(1 - 11 / 1024)) < 1e-12 and 2.29 < z_pass < 2.31
     # differences 0, 0.01, 0, 0.01 ...: mean 0.005, sample sd 0.005 * sqrt(20 / 19), z = sqrt(19)
     assert abs(z_skate - 19 ** 0.5) < 1e-9
     assert paired_z(new, base)[0] == -z_pass
@@ -76,7 +77,7 @@ def test_with_z_a_content_is_worse_only_beyond_noise(tmp_path, capsys):
                 "bow": _takes([1] * 39 + [0], [0.0] * 40)}
     assert [r["worse"] for r in compare(base, slightly)] == [True, True]  # the raw rule counts any drop
     rows = compare(base, slightly, z=1.96)
-    assert [r["worse"] for r in rows] == [False, False] and rows[0]["z"][0] == 1.0
+    assert [r["worse"] for r in rows] == [False, False] and rows[0]["z"][0] == 0.0  # 1 take to 0: p 0.5
     clearly = {"walk": _takes([1] * 20 + [0] * 20, [s + 0.05 for s in rng]), "bow": base["bow"]}
     rows = compare(base, clearly, z=1.96)
     assert [r["worse"] for r in rows] == [True, False] and rows[0]["z"][1] == float("inf")
@@ -88,5 +89,13 @@ def test_with_z_a_content_is_worse_only_beyond_noise(tmp_path, capsys):
     assert rows[0]["z"] is None and [r["worse"] for r in rows] == [True, False]
     assert main([str(_run(tmp_path / "a.json", base)), str(_run(tmp_path / "b.json", slightly)), "--z", "1.96"]) == 0
     out = capsys.readouterr().out
-    assert "| walk | 0.75 | 0.72 | 0.100 | 0.099 | +1.0 | -0.2 |  |" in out
+    assert "| walk | 0.75 | 0.72 | 0.100 | 0.099 | +0.0 | -0.2 |  |" in out
     assert out.splitlines()[-1] == "0 of 2 contents worse (beyond paired z 1.96)"
+
+
+def test_mcnemar_z_is_exact_for_few_changed_takes():
+    assert mcnemar_z(0, 0) == mcnemar_z(3, 3) == mcnemar_z(1, 0) == 0.0
+    assert abs(mcnemar_z(4, 0) - NormalDist().inv_cdf(1 - 1 / 16)) < 1e-12  # 4 to 0: p 0.0625, z 1.53, not 2.0
+    assert mcnemar_z(0, 4) == -mcnemar_z(4, 0)
+    assert mcnemar_z(6, 0) > 1.96 > mcnemar_z(5, 0)  # 6 to 0: p 0.016; 5 to 0: p 0.031
+    assert abs(mcnemar_z(100, 60) - 3.1) < 0.1  # many changed takes: close to (lost - won) / sqrt(n) = 3.16
