@@ -9,7 +9,7 @@ contents) its skating higher, by more than ``--tolerance``, or when NEW did not 
 over all the shared prompt sets: the gate of a new default model (issue 15) is none worse.
 
 With ``--z``, a content is worse only when NEW is worse beyond noise: both runs hold each take (same prompts, same
-seeds, same order), so the test is paired. Pass: McNemar's exact test over the takes that pass in one run only,
+seeds, same order), so the test is paired, each distinct request once (per-take keys). Pass: McNemar's exact test over the takes that pass in one run only,
 as a z; skating: the mean per-take difference over its standard error. Positive z = NEW worse. Contents without per-take numbers (JSON
 from before they were written) fall back to ``--tolerance``. The last lines also give each prompt set's mean pass
 rate and mean locomotion skating, the gate's aggregate part.
@@ -33,15 +33,29 @@ def prompt_sets(path: Path) -> dict:
 
 
 def paired_z(base_takes: dict, new_takes: dict) -> tuple[float, float]:
-    """(pass z, skating z) of NEW against BASE over the same takes; positive = NEW worse."""
-    lost = sum(b and not n for b, n in zip(base_takes["passed"], new_takes["passed"]))
-    won = sum(n and not b for b, n in zip(base_takes["passed"], new_takes["passed"]))
+    """(pass z, skating z) of NEW against BASE over the same takes, each distinct request once; + = NEW worse."""
+    keep = distinct_takes(base_takes, new_takes)
+    base_passed, new_passed = [base_takes["passed"][i] for i in keep], [new_takes["passed"][i] for i in keep]
+    lost = sum(b and not n for b, n in zip(base_passed, new_passed))
+    won = sum(n and not b for b, n in zip(base_passed, new_passed))
     z_pass = mcnemar_z(lost, won)
-    d = [n - b for b, n in zip(base_takes["skating"], new_takes["skating"])]
+    d = [new_takes["skating"][i] - base_takes["skating"][i] for i in keep]
     mean = sum(d) / len(d)
     sd = math.sqrt(sum((x - mean) ** 2 for x in d) / (len(d) - 1)) if len(d) > 1 else 0.0
     z_skate = mean / (sd / math.sqrt(len(d))) if sd > 1e-9 else (math.inf if mean > 1e-9 else 0.0)  # rounding
     return z_pass, z_skate
+
+
+def distinct_takes(base_takes: dict, new_takes: dict) -> list[int]:
+    """Indices of the takes to pair: the first of each key (prompt | seconds | seed | variant) where both runs hold
+    the same keys, since a repeated request is the same take and would count twice; else every take."""
+    keys = base_takes.get("keys")
+    if not keys or keys != new_takes.get("keys"):
+        return list(range(len(base_takes["passed"])))
+    first: dict[str, int] = {}
+    for i, key in enumerate(keys):
+        first.setdefault(key, i)
+    return sorted(first.values())
 
 
 def mcnemar_z(lost: int, won: int) -> float:

@@ -21,9 +21,10 @@ on a folder with only a VAE (then nothing is generated from text).
 ``--first-seed K`` runs seeds K..K+seeds-1: fresh takes of the same prompts (a confirmation on new samples).
 ``--valid-references`` leaves out the captions of test clips whose own capture fails the content's checks (an
 elderly "run" slower than the run check's threshold): a faithful take of such a caption fails too.
-Prints a table; ``--json`` writes every number, with each generated take's pass (0/1) and skating ratio in
-generation order (the same order for every model), so ``scripts/compare_side_accuracy.py --z`` can pair the takes
-of two runs. Assert nothing: a measurement, not a test.
+Prints a table; ``--json`` writes every number, with each generated take's pass (0/1), skating ratio and key
+(prompt, seconds, seed, variant) in generation order (the same order for every model), so
+``scripts/compare_side_accuracy.py --z`` can pair the takes of two runs and count a repeated request once (a
+mirrored clip whose caption names no side asks for the same take). Assert nothing: a measurement, not a test.
 """
 
 from __future__ import annotations
@@ -220,8 +221,9 @@ class Tally:
         self.failed = defaultdict(int)
         self.take_passed: list[int] = []  # per take, in generation order: what a paired comparison of two runs needs
         self.take_skating: list[float] = []
+        self.take_keys: list[str] = []  # what was asked (prompt | seconds | seed | variant): equal keys, equal takes
 
-    def add(self, joints: np.ndarray, content: str, fps: float) -> None:
+    def add(self, joints: np.ndarray, content: str, fps: float, key: str = "") -> None:
         skating = float(foot_skating_ratio(joints, fps))
         self.skating += skating
         result = physical.classify(joints, fps)
@@ -230,6 +232,7 @@ class Tally:
         self.passed += not failed
         self.take_passed.append(int(not failed))
         self.take_skating.append(round(skating, 5))
+        self.take_keys.append(key)
         for name in failed:
             self.failed[name] += 1
         side = physical.side_of(content)
@@ -248,6 +251,7 @@ class Tally:
         self.skating += other.skating
         self.take_passed += other.take_passed
         self.take_skating += other.take_skating
+        self.take_keys += other.take_keys
         for k, v in other.failed.items():
             self.failed[k] += v
 
@@ -263,7 +267,8 @@ class Tally:
             "failed_checks": dict(self.failed),
         }
         if takes:
-            out["takes"] = {"passed": list(self.take_passed), "skating": list(self.take_skating)}
+            out["takes"] = {"passed": list(self.take_passed), "skating": list(self.take_skating),
+                            "keys": list(self.take_keys)}
         return out
 
 
@@ -333,7 +338,8 @@ def generate(pipe, reqs: list[dict], batch: int, steps: int | None, guidance: fl
                 for row in range(len(out.lengths)):
                     r = chunk[row // variants]
                     joints = out.joints[row, : int(out.lengths[row])]
-                    tallies[(r["source"], r["length"])][r["content"]].add(joints, r["content"], fps)
+                    key = f"{r['prompt']}|{r['seconds']:.3f}|{seed}|{row % variants}"
+                    tallies[(r["source"], r["length"])][r["content"]].add(joints, r["content"], fps, key)
                     if per_prompt is not None and r["source"] == "paraphrase":
                         per_prompt[(r["length"], r["content"], r["prompt"])].add(joints, r["content"], fps)
                 bar.update(len(out.lengths))

@@ -99,3 +99,15 @@ def test_mcnemar_z_is_exact_for_few_changed_takes():
     assert mcnemar_z(0, 4) == -mcnemar_z(4, 0)
     assert mcnemar_z(6, 0) > 1.96 > mcnemar_z(5, 0)  # 6 to 0: p 0.016; 5 to 0: p 0.031
     assert abs(mcnemar_z(100, 60) - 3.1) < 0.1  # many changed takes: close to (lost - won) / sqrt(n) = 3.16
+
+
+def test_a_repeated_request_is_paired_once():
+    # 6 takes lost, none won: p 1/64, z 2.15; but if they are 3 requests asked twice, 3 takes lost: p 1/8, z 1.15
+    base = {"passed": [1] * 6 + [1] * 4, "skating": [0.1] * 10}
+    new = {"passed": [0] * 6 + [1] * 4, "skating": [0.1] * 6 + [0.1] * 4}
+    assert paired_z(base, new)[0] > 1.96  # without keys every take counts
+    keys = ["a", "b", "c", "a", "b", "c", "d", "e", "f", "g"]
+    with_keys = paired_z({**base, "keys": keys}, {**new, "keys": keys})[0]
+    assert with_keys == mcnemar_z(3, 0) < 1.96
+    other = ["x"] * 10  # the runs asked for different things: no collapsing
+    assert paired_z({**base, "keys": keys}, {**new, "keys": other})[0] == paired_z(base, new)[0]

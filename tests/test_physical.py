@@ -406,10 +406,13 @@ def test_side_accuracy_script_end_to_end(bandai_clips, tmp_path, request, capsys
         for c in mode["contents"].values():
             assert 0.0 <= c["pass_rate"] <= 1.0 and c["side_accuracy"] + c["opposite_side"] <= 1.0
             # each take's numbers, for a paired comparison of two runs, add up to the row
-            assert len(c["takes"]["passed"]) == len(c["takes"]["skating"]) == c["n"]
+            assert len(c["takes"]["passed"]) == len(c["takes"]["skating"]) == len(c["takes"]["keys"]) == c["n"]
             assert sum(c["takes"]["passed"]) / c["n"] == c["pass_rate"]
             assert sum(c["takes"]["skating"]) / c["n"] == pytest.approx(c["skating"], abs=1e-5)
     assert "takes" not in rep["real"]["contents"]["walk-turn-left"] and "takes" not in rep["paraphrases"][0]
+    # a key per take: prompt | seconds | seed | variant; a paraphrase's 2 seeds are variants 0 and 1 of seed 0
+    keys = rep["generated"]["paraphrase@2s"]["contents"]["walk-turn-left"]["takes"]["keys"]
+    assert len(set(keys)) == 8 and all(k.endswith(("|0|0", "|0|1")) and "|2.000|" in k for k in keys)
     assert "side" in printed
 
 
