@@ -1,12 +1,15 @@
 """Average the denoisers of model folders that share one VAE into a new model folder (a weight average).
 
     python scripts/average_denoisers.py A B [C ...] --out DIR [--weights 0.5,0.5] [--model-id ID]
+        [--only text_proj,token_proj,...]
 
 Fine-tunes that start from one denoiser can be averaged weight by weight; the average often keeps part of each
 fine-tune's gain (docs/evaluation.md, session 18). The first folder gives everything but the denoiser: the VAE, the
 config (repairs, stepping, sampling), the coverage index and any Draft (which stays the first folder's student).
 The denoiser is the weighted mean of all the folders' denoisers, computed in float32 and stored in the first
 folder's precision; config.json's provenance records the folders and weights under ``denoiser_average``.
+``--only`` averages just the named top-level modules (e.g. the text-reading ``text_proj,token_proj,token_pool,
+null_condition``) and keeps the first folder's weights for the rest; with ``--weights 0,1`` it transplants them.
 
 Refuses folders whose VAE weights or denoiser configs differ, and an existing --out; writes into a temporary folder
 first, so a refusal or an error leaves nothing behind.
@@ -42,29 +45,39 @@ def check_compatible(folders: list[Path]) -> None:
             raise CheckpointError(f"{folder}'s VAE differs from {folders[0]}'s: their latents do not match")
 
 
-def average_state(states: list[dict], weights: list[float]) -> dict:
-    """Weighted mean of state dicts with the same keys and shapes, in the first one's dtypes."""
+def average_state(states: list[dict], weights: list[float], only: tuple[str, ...] = ()) -> dict:
+    """Weighted mean of state dicts with the same keys and shapes, in the first one's dtypes; with ``only``, of the
+    weights under those top-level modules alone (the rest: the first state's)."""
     out = {}
     for key, ref in states[0].items():
+        if only and key.split(".")[0] not in only:
+            out[key] = ref
+            continue
         total = sum(w * s[key].float() for s, w in zip(states, weights))
         out[key] = total.to(ref.dtype).contiguous()
     return out
 
 
-def average_denoisers(folders: list[Path], out: Path, weights: list[float], model_id: str | None = None) -> Path:
+def average_denoisers(folders: list[Path], out: Path, weights: list[float], model_id: str | None = None,
+                      only: tuple[str, ...] = ()) -> Path:
     """Write the averaged model folder at ``out`` (see the module docstring); returns ``out``."""
     if out.exists():
         raise CheckpointError(f"{out} exists; choose a new folder")
     check_compatible(folders)
     states = [load_file(folder / "denoiser.safetensors") for folder in folders]
+    modules = {key.split(".")[0] for key in states[0]}
+    if set(only) - modules:
+        raise CheckpointError(f"no module {', '.join(sorted(set(only) - modules))} in the denoiser; it has "
+                              f"{', '.join(sorted(modules))}")
     tmp = Path(tempfile.mkdtemp(prefix=".average-", dir=out.parent))
     try:
         staged = tmp / "model"
         shutil.copytree(folders[0], staged)
-        save_file(average_state(states, weights), staged / "denoiser.safetensors")
+        save_file(average_state(states, weights, only), staged / "denoiser.safetensors")
         cfg = json.loads((staged / "config.json").read_text())
         ids = [json.loads((f / "config.json").read_text()).get("model_id") or f.name for f in folders]
-        cfg.setdefault("provenance", {})["denoiser_average"] = {"models": ids, "weights": weights}
+        record = {"models": ids, "weights": weights, **({"modules": list(only)} if only else {})}
+        cfg.setdefault("provenance", {})["denoiser_average"] = record
         if model_id:
             cfg["model_id"] = model_id
         save_json(staged / "config.json", cfg)
@@ -91,12 +104,14 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--weights", default=None, help="comma-separated, one per folder, summing to 1 (default equal)")
     parser.add_argument("--model-id", default=None)
+    parser.add_argument("--only", default="", help="comma-separated top-level denoiser modules to average (default all)")
     args = parser.parse_args(argv)
     if len(args.folders) < 2:
         parser.error("give at least two model folders")
     try:
         weights = parse_weights(args.weights, len(args.folders))
-        average_denoisers(args.folders, args.out, weights, args.model_id)
+        only = tuple(m.strip() for m in args.only.split(",") if m.strip())
+        average_denoisers(args.folders, args.out, weights, args.model_id, only)
     except (ValueError, CheckpointError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -65,3 +65,19 @@ def test_folders_that_do_not_share_a_vae_or_bad_weights_are_refused_and_leave_no
     assert main([str(a), str(b), "--out", str(out)]) == 2
     assert "exists" in capsys.readouterr().err and list(out.iterdir()) == []
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "avg", "b", "c"]  # no temporary folder left
+
+
+def test_only_named_modules_are_averaged_and_the_rest_is_the_first_folders(folders, tmp_path, capsys):
+    a, b, _ = folders
+    out = tmp_path / "text"
+    assert main([str(a), str(b), "--out", str(out), "--weights", "0,1", "--only", "text_proj,token_proj"]) == 0
+    da, db, got = (load_file(f / "denoiser.safetensors") for f in (a, b, out))
+    moved = [k for k in da if k.split(".")[0] in ("text_proj", "token_proj")]
+    assert moved and len(moved) < len(da)
+    for k in da:
+        assert torch.equal(got[k], db[k] if k in moved else da[k])
+    assert json.loads((out / "config.json").read_text())["provenance"]["denoiser_average"]["modules"] == [
+        "text_proj", "token_proj"]
+    capsys.readouterr()
+    assert main([str(a), str(b), "--out", str(tmp_path / "bad"), "--only", "text_projection"]) == 2
+    assert "no module text_projection" in capsys.readouterr().err and not (tmp_path / "bad").exists()
