@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shutil
 import sys
 import tempfile
@@ -63,6 +64,8 @@ def average_denoisers(folders: list[Path], out: Path, weights: list[float], mode
     """Write the averaged model folder at ``out`` (see the module docstring); returns ``out``."""
     if out.exists():
         raise CheckpointError(f"{out} exists; choose a new folder")
+    if not out.parent.is_dir():
+        raise CheckpointError(f"{out.parent} is not a folder; create it first")
     check_compatible(folders)
     states = [load_file(folder / "denoiser.safetensors") for folder in folders]
     modules = {key.split(".")[0] for key in states[0]}
@@ -93,7 +96,7 @@ def parse_weights(text: str | None, n: int) -> list[float]:
     if text is None:
         return [1.0 / n] * n
     weights = [float(w) for w in text.split(",")]
-    if len(weights) != n or any(w < 0 for w in weights) or abs(sum(weights) - 1.0) > 1e-6:
+    if len(weights) != n or not all(math.isfinite(w) and w >= 0 for w in weights) or abs(sum(weights) - 1.0) > 1e-6:
         raise ValueError(f"--weights needs {n} non-negative numbers summing to 1, got {text!r}")
     return weights
 

@@ -9,9 +9,10 @@ contents) its skating higher, by more than ``--tolerance``, or when NEW did not 
 over all the shared prompt sets: the gate of a new default model (issue 15) is none worse.
 
 With ``--z``, a content is worse only when NEW is worse beyond noise: both runs hold each take (same prompts, same
-seeds, same order), so the test is paired, each distinct request once (per-take keys). Pass: McNemar's exact test over the takes that pass in one run only,
-as a z; skating: the mean per-take difference over its standard error. Positive z = NEW worse. Contents without per-take numbers (JSON
-from before they were written) fall back to ``--tolerance``. The last lines also give each prompt set's mean pass
+seeds, same order, the same per-take keys), so the test is paired, each distinct request once. Pass: McNemar's
+exact test over the takes that pass in one run only, as a z; skating: the mean per-take difference over its
+standard error. Positive z = NEW worse. Contents without per-take numbers (JSON from before they were written) or
+whose takes were asked differently fall back to ``--tolerance``. The last lines also give each prompt set's mean pass
 rate and mean locomotion skating, the gate's aggregate part.
 """
 
@@ -47,14 +48,14 @@ def paired_z(base_takes: dict, new_takes: dict) -> tuple[float, float]:
 
 
 def distinct_takes(base_takes: dict, new_takes: dict) -> list[int]:
-    """Indices of the takes to pair: the first of each key (prompt | seconds | seed | variant) where both runs hold
-    the same keys, since a repeated request is the same take and would count twice; else every take."""
-    keys = base_takes.get("keys")
-    if not keys or keys != new_takes.get("keys"):
+    """Indices of the takes to pair: the first of each key (prompt | seconds | seed | variant), since a repeated
+    request is the same take and would count twice; every take where the runs hold no keys (older JSON)."""
+    keys = base_takes.get("keys") or new_takes.get("keys")
+    if not keys:
         return list(range(len(base_takes["passed"])))
     first: dict[str, int] = {}
     for i, key in enumerate(keys):
-        first.setdefault(key, i)
+        first.setdefault(key or f"#{i}", i)  # an empty key names nothing: never merged
     return sorted(first.values())
 
 
@@ -71,8 +72,11 @@ def mcnemar_z(lost: int, won: int) -> float:
 
 
 def _paired(b: dict, n: dict) -> bool:
+    """Both runs hold per-take numbers for the same takes (equal keys where both have them)."""
     bt, nt = b.get("takes"), n.get("takes")
-    return bool(bt and nt) and len(bt["passed"]) == len(nt["passed"]) == len(bt["skating"]) == len(nt["skating"]) > 0
+    if not (bt and nt) or not len(bt["passed"]) == len(nt["passed"]) == len(bt["skating"]) == len(nt["skating"]) > 0:
+        return False
+    return not (bt.get("keys") and nt.get("keys")) or bt["keys"] == nt["keys"]
 
 
 def compare(base: dict, new: dict, tolerance: float = 0.0, z: float | None = None) -> list[dict]:
@@ -117,6 +121,10 @@ def main(argv=None) -> int:
     parser.add_argument("--z", type=float, default=None,
                         help="worse only beyond this paired z (e.g. 1.96), where both runs hold per-take numbers")
     args = parser.parse_args(argv)
+    if args.z is not None and not (math.isfinite(args.z) and args.z >= 0):
+        parser.error(f"--z must be a finite number >= 0 (e.g. 1.96), got {args.z}")
+    if not (math.isfinite(args.tolerance) and args.tolerance >= 0):
+        parser.error(f"--tolerance must be a finite number >= 0, got {args.tolerance}")
     try:
         base, new = prompt_sets(args.base), prompt_sets(args.new)
     except (OSError, KeyError, TypeError, json.JSONDecodeError) as exc:

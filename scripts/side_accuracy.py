@@ -374,8 +374,9 @@ def vae_reconstruct(pipe, clips: dict, lengths: list, max_clips: int, batch: int
                     out_n = torch.full_like(n, pipe.frames_for(secs))
                 out = pipe.latents_to_features(z, out_n.to(pipe.device))
                 joints = pipe.joints_from_features(out, out_n.tolist())
-                for i, (content, _) in enumerate(chunk):
-                    tallies[("vae-recon", length)][content].add(joints[i, : int(out_n[i])], content, fps)
+                for i, (content, clip) in enumerate(chunk):
+                    tallies[("vae-recon", length)][content].add(joints[i, : int(out_n[i])], content, fps,
+                                                                f"{clip['id']}|{length}")
                 bar.update(len(chunk))
     return time.perf_counter() - t0
 
@@ -500,6 +501,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"no physical check for {', '.join(unknown)}; checked contents: {', '.join(physical.CHECKED_LABELS)}")
     if args.seeds < 1:
         ap.error("--seeds must be >= 1")
+    if args.first_seed < 0:
+        ap.error("--first-seed must be >= 0")
     root = Path(args.data)
     if not root.is_dir():
         ap.error(f"data folder {root} does not exist")

@@ -58,9 +58,11 @@ def test_folders_that_do_not_share_a_vae_or_bad_weights_are_refused_and_leave_no
     out = tmp_path / "avg"
     assert main([str(a), str(c), "--out", str(out)]) == 2
     assert "VAE differs" in capsys.readouterr().err and not out.exists()
-    for weights in ("0.5", "0.7,0.7", "-0.5,1.5", "x,y"):
+    for weights in ("0.5", "0.7,0.7", "-0.5,1.5", "x,y", "nan,nan", "inf,-inf"):
         assert main([str(a), str(b), "--out", str(out), f"--weights={weights}"]) == 2
         assert capsys.readouterr().err.startswith("error: ") and not out.exists()
+    assert main([str(a), str(b), "--out", str(tmp_path / "no" / "avg")]) == 2
+    assert "is not a folder" in capsys.readouterr().err
     out.mkdir()
     assert main([str(a), str(b), "--out", str(out)]) == 2
     assert "exists" in capsys.readouterr().err and list(out.iterdir()) == []

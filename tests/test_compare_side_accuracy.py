@@ -7,6 +7,8 @@ import sys
 from pathlib import Path
 from statistics import NormalDist
 
+import pytest
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 
 from compare_side_accuracy import compare, main, mcnemar_z, paired_z  # noqa: E402
@@ -109,5 +111,17 @@ def test_a_repeated_request_is_paired_once():
     keys = ["a", "b", "c", "a", "b", "c", "d", "e", "f", "g"]
     with_keys = paired_z({**base, "keys": keys}, {**new, "keys": keys})[0]
     assert with_keys == mcnemar_z(3, 0) < 1.96
-    other = ["x"] * 10  # the runs asked for different things: no collapsing
-    assert paired_z({**base, "keys": keys}, {**new, "keys": other})[0] == paired_z(base, new)[0]
+    assert paired_z({**base, "keys": [""] * 10}, {**new, "keys": [""] * 10}) == paired_z(base, new)  # no names
+    # runs whose takes were asked differently are not paired: the tolerance rule decides
+    mine = {"walk": {"pass_rate": 1.0, "skating": 0.1, "takes": {**base, "keys": keys}}}
+    theirs = {"walk": {"pass_rate": 0.4, "skating": 0.1, "takes": {**new, "keys": [k + "!" for k in keys]}}}
+    row = compare(mine, theirs, z=1.96)[0]
+    assert row["z"] is None and row["worse"]
+
+
+def test_bad_z_or_tolerance_is_refused(tmp_path, capsys):
+    run = _run(tmp_path / "a.json", {"walk": {"pass_rate": 0.5, "skating": 0.1}})
+    for flag in (["--z", "nan"], ["--z", "inf"], ["--z=-1"], ["--tolerance", "nan"], ["--tolerance=-0.1"]):
+        with pytest.raises(SystemExit) as exc:
+            main([str(run), str(run), *flag])
+        assert exc.value.code == 2 and "must be a finite number >= 0" in capsys.readouterr().err

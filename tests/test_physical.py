@@ -413,6 +413,11 @@ def test_side_accuracy_script_end_to_end(bandai_clips, tmp_path, request, capsys
     # a key per take: prompt | seconds | seed | variant; a paraphrase's 2 seeds are variants 0 and 1 of seed 0
     keys = rep["generated"]["paraphrase@2s"]["contents"]["walk-turn-left"]["takes"]["keys"]
     assert len(set(keys)) == 8 and all(k.endswith(("|0|0", "|0|1")) and "|2.000|" in k for k in keys)
+    recon = rep["generated"]["vae-recon@clip"]["contents"]["walk-turn-left"]["takes"]["keys"]
+    assert recon == ["dataset-2_walk-turn-left_normal_027|clip"]
+    with pytest.raises(SystemExit):
+        script.main(["--data", str(root), "--model", str(model), "--first-seed", "-1"])
+    assert "--first-seed must be >= 0" in capsys.readouterr().err
     assert "side" in printed
 
 
