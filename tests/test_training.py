@@ -453,3 +453,40 @@ def test_caption_embedding_cache_is_remade_for_another_caption_list(tmp_path):
     cached_caption_embeddings(path, ["a", "c"], make(["a", "c"]))  # same count, other captions: remade
     cached_caption_embeddings(path, ["a", "c", "d"], make(["a", "c", "d"]))
     assert calls[1:] == [["a", "c"], ["a", "c", "d"]]
+
+
+def test_train_modules_trains_only_the_named_modules_and_refuses_unknown_names(tmp_path, capsys):
+    """train_modules: the named top-level modules move; every other weight stays the --init model's, bit for bit,
+    also across --resume. An unknown name or a bare string is refused before any work, leaving no folder."""
+    from safetensors.torch import load_file
+
+    from mld_core.testing import tiny_model
+    from mld_core.training.denoiser import DenoiserTrainConfig
+    from test_reliability import _h3d_folder
+
+    model = tiny_model(tmp_path / "tiny")
+    data = _h3d_folder(tmp_path / "data")
+    run = tmp_path / "run"
+    args = ["train", "denoiser", "--data", str(data), "--vae", str(model), "--init", str(model), "--out", str(run),
+            "--threads", "1", "--lr", "1e-2"]
+    encoder = json.loads((model / "config.json").read_text())["text_encoder"]
+    text_only = json.dumps({"train_modules": ["text_proj", "token_proj"], "batch_size": 8, "save_every": 3,
+                            "text_encoder": encoder})
+    assert main(args + ["--steps", "3", "--config", text_only]) == 0
+    assert main(args + ["--steps", "6", "--config", text_only, "--resume"]) == 0
+    start, tuned = load_file(str(model / "denoiser.safetensors")), load_file(str(run / "denoiser.safetensors"))
+    moved = sorted({k.split(".")[0] for k in start if not torch.equal(start[k].float(), tuned[k].float())})
+    assert moved == ["text_proj", "token_proj"]
+    saved = json.loads((run / "config.json").read_text())["provenance"]["denoiser_training"]
+    assert saved["train_modules"] == ["text_proj", "token_proj"]
+
+    capsys.readouterr()
+    bad = tmp_path / "bad"
+    bad_args = [a if a != str(run) else str(bad) for a in args]
+    assert main(bad_args + ["--steps", "1", "--config", '{"train_modules": ["text_projection"]}']) == 2
+    err = capsys.readouterr().err
+    assert "no module text_projection" in err and "token_proj" in err and not bad.exists()
+    assert main(bad_args + ["--steps", "1", "--config", '{"train_modules": "text_proj"}']) == 2
+    assert "train_modules must be a non-empty list" in capsys.readouterr().err and not bad.exists()
+    with pytest.raises(ValueError, match="train_modules must be"):
+        DenoiserTrainConfig(train_modules=[])

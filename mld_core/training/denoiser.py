@@ -59,10 +59,16 @@ class DenoiserTrainConfig:
     text_encoder: dict = field(default_factory=lambda: {"kind": "minilm", "path": None})
     init: str | None = None  # a model folder to continue from (fine-tuning): its denoiser and latent normalisation
     reworded_captions: int = 0  # extra versions of each caption in other words (subjects, synonyms) to train on
+    train_modules: list | None = None  # the denoiser's top-level modules to train (e.g. the text-reading ones); None: all
     denoiser: DenoiserConfig = field(default_factory=DenoiserConfig)
 
     def __post_init__(self):
         self.reworded_captions = inputs.int_in_range(self.reworded_captions, "reworded_captions", 0, 20)
+        if self.train_modules is not None:
+            if isinstance(self.train_modules, str) or not self.train_modules \
+                    or not all(isinstance(m, str) and m for m in self.train_modules):
+                raise ValueError("train_modules must be a non-empty list of module names, or null for all")
+            self.train_modules = list(self.train_modules)
         if isinstance(self.denoiser, dict):
             self.denoiser = DenoiserConfig(**self.denoiser)
 
@@ -191,6 +197,22 @@ def _write_coverage_index(out: Path, units: list[Unit], encoder) -> None:
     index.save(out / coverage.INDEX_NAME)
 
 
+def trainable_parameters(model: torch.nn.Module, modules: list | None) -> list:
+    """The parameters of the named top-level modules (all when ``modules`` is None); the rest are frozen."""
+    if modules is None:
+        return list(model.parameters())
+    known = sorted({name.split(".")[0] for name, _ in model.named_parameters()})
+    unknown = [m for m in modules if m not in known]
+    if unknown:
+        raise ValueError(f"train_modules: no module {', '.join(unknown)} in this denoiser (it has {', '.join(known)})")
+    trained = []
+    for name, p in model.named_parameters():
+        p.requires_grad_(name.split(".")[0] in modules)
+        if p.requires_grad:
+            trained.append(p)
+    return trained
+
+
 def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     from mld_core.data.dataset import load_split
 
@@ -218,6 +240,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     dcfg.latent_tokens, dcfg.latent_dim, dcfg.max_frames = base.vae.latent_tokens, base.vae.latent_dim, base.max_frames
     if cfg.cond == "action":
         dcfg.num_actions = len(actions)
+    trainable_parameters(LatentDenoiser(dcfg), cfg.train_modules)  # names checked before the slow steps
 
     # 2. Frozen-encoder latents and caption embeddings, cached in the run folder.
     lat = _cached(out / LATENT_CACHE, lambda: encode_latents(vae, units, mean, std, cfg.crops_per_clip,
@@ -250,7 +273,8 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     if init is not None and not resume:
         load_weights(Path(cfg.init) / "denoiser.safetensors", denoiser)
     ema = copy.deepcopy(denoiser).requires_grad_(False)
-    opt = torch.optim.AdamW(denoiser.parameters(), lr=cfg.lr, weight_decay=0.01)
+    trained = trainable_parameters(denoiser, cfg.train_modules)
+    opt = torch.optim.AdamW(trained, lr=cfg.lr, weight_decay=0.01)
     step, extra = load_train_state(out, denoiser, opt) if resume else (0, {})
     if resume and (out / "denoiser.safetensors").is_file():
         load_weights(out / "denoiser.safetensors", ema)
@@ -304,7 +328,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
         loss = torch.nn.functional.mse_loss(pred.float(), noise)
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(denoiser.parameters(), 1.0)
+        torch.nn.utils.clip_grad_norm_(trained, 1.0)
         opt.step()
         with torch.no_grad():
             decay = min(cfg.ema_decay, (1 + step) / (10 + step))
