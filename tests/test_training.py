@@ -415,6 +415,23 @@ def test_reworded_captions_add_versions_in_other_words_and_keep_the_originals():
     assert texts == with_reworded_captions(units, 3, seed=0)[0]  # seeded
 
 
+def test_rewording_never_names_a_style_the_caption_lacks():
+    """In the captions a subject such as "an old man" or "a tired person" names the clip's style: a rewording that
+    put one in place of "a person" would teach that style on clips without it."""
+    from mld_core.data.captions import STYLES, captions_for, reworded
+
+    style_words = {w for style in STYLES.values() for subject in style["subject"] for w in subject.split()
+                   if w not in ("a", "an", "person", "someone", "man", "woman", "who", "is", "the")}
+    rng = np.random.default_rng(0)
+    introduced = set()
+    for content in ("walk", "walk-back", "wave-both-hands"):
+        for caption in captions_for(content, "normal", f"x_{content}_normal_000", n=6):
+            for _ in range(40):
+                before, after = set(caption.lower().split()), set(reworded(caption, rng).lower().split())
+                introduced |= (after - before) & style_words
+    assert introduced == set(), introduced
+
+
 def test_rewording_brings_in_no_wording_of_the_held_out_paraphrases():
     """side_accuracy.py's paraphrases measure wordings the captions lack; a synonym that writes one of them
     into training would turn that measure into recall (function words such as pronouns aside)."""

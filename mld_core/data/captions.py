@@ -504,6 +504,10 @@ def caption_line(text: str, start: float = 0.0, end: float = 0.0) -> str:
 SUBJECTS = ("someone", "a person", "a man", "a woman", "the person", "the man", "the woman", "he", "she",
             "an old man", "an old woman", "a child", "a girl", "a boy", "the character", "a dancer", "a soldier",
             "a tired person", "a happy person", "the figure", "my character", "a guy", "the lady", "an athlete")
+# The subjects a rewording puts in place of a caption's neutral one: neutral too, since in the captions a subject such
+# as "an old man" or "a tired person" names the clip's style.
+NEUTRAL_SUBJECTS = ("someone", "a person", "a man", "a woman", "the person", "the man", "the woman", "he", "she",
+                    "the character", "the figure", "my character", "a guy", "the lady")
 CAPTION_SUBJECTS = ("a person", "the person", "someone", "a man", "the man", "a woman", "the woman", "a human",
                     "person", "the figure")
 # No synonym writes in a wording of the held-out paraphrases (scripts/side_accuracy.py) that the captions lack
@@ -521,12 +525,12 @@ SYNONYMS = {"walks": ("paces", "moves", "goes"), "runs": ("jogs", "sprints", "da
 
 
 def reworded(caption: str, rng: np.random.Generator) -> str:
-    """A caption in other words: another subject (``SUBJECTS``) and, for about half the words that have one, a
-    synonym, as users word their prompts."""
+    """A caption in other words: another neutral subject (``NEUTRAL_SUBJECTS``) and, for about half the words that
+    have one, a synonym, as users word their prompts."""
     text = caption
     for subject in CAPTION_SUBJECTS:
         if text.lower().startswith(subject + " "):
-            text = SUBJECTS[int(rng.integers(len(SUBJECTS)))] + text[len(subject):]
+            text = NEUTRAL_SUBJECTS[int(rng.integers(len(NEUTRAL_SUBJECTS)))] + text[len(subject):]
             break
     words = []
     for word in text.split():
