@@ -490,6 +490,9 @@ def test_train_modules_trains_only_the_named_modules_and_refuses_unknown_names(t
     text_only = json.dumps({"train_modules": ["text_proj", "token_proj"], "batch_size": 8, "save_every": 3,
                             "text_encoder": encoder})
     assert main(args + ["--steps", "3", "--config", text_only]) == 0
+    capsys.readouterr()
+    assert main(args + ["--steps", "6", "--resume"]) == 2  # another setting cannot continue the optimiser's state
+    assert "trained train_modules ['text_proj', 'token_proj']" in capsys.readouterr().err
     assert main(args + ["--steps", "6", "--config", text_only, "--resume"]) == 0
     start, tuned = load_file(str(model / "denoiser.safetensors")), load_file(str(run / "denoiser.safetensors"))
     moved = sorted({k.split(".")[0] for k in start if not torch.equal(start[k].float(), tuned[k].float())})
@@ -505,5 +508,6 @@ def test_train_modules_trains_only_the_named_modules_and_refuses_unknown_names(t
     assert "no module text_projection" in err and "token_proj" in err and not bad.exists()
     assert main(bad_args + ["--steps", "1", "--config", '{"train_modules": "text_proj"}']) == 2
     assert "train_modules must be a non-empty list" in capsys.readouterr().err and not bad.exists()
-    with pytest.raises(ValueError, match="train_modules must be"):
-        DenoiserTrainConfig(train_modules=[])
+    for bad in ([], {"text_proj": 1}, 5, [""], ["text_proj", 3]):
+        with pytest.raises(ValueError, match="train_modules must be"):
+            DenoiserTrainConfig(train_modules=bad)

@@ -65,7 +65,7 @@ class DenoiserTrainConfig:
     def __post_init__(self):
         self.reworded_captions = inputs.int_in_range(self.reworded_captions, "reworded_captions", 0, 20)
         if self.train_modules is not None:
-            if isinstance(self.train_modules, str) or not self.train_modules \
+            if not isinstance(self.train_modules, (list, tuple)) or not self.train_modules \
                     or not all(isinstance(m, str) and m for m in self.train_modules):
                 raise ValueError("train_modules must be a non-empty list of module names, or null for all")
             self.train_modules = list(self.train_modules)
@@ -241,6 +241,10 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     if cfg.cond == "action":
         dcfg.num_actions = len(actions)
     trainable_parameters(LatentDenoiser(dcfg), cfg.train_modules)  # names checked before the slow steps
+    if resume and (out / "train_config.json").is_file():
+        before = json.loads((out / "train_config.json").read_text()).get("train_modules")
+        if before != cfg.train_modules:
+            raise ValueError(f"--resume: {out} trained train_modules {before}; resume it with the same setting")
 
     # 2. Frozen-encoder latents and caption embeddings, cached in the run folder.
     lat = _cached(out / LATENT_CACHE, lambda: encode_latents(vae, units, mean, std, cfg.crops_per_clip,
