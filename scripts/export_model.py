@@ -1,7 +1,11 @@
 """Export a trained run folder as a shippable model folder: fp16 safetensors, config.json and MODEL_CARD.md.
 
     python scripts/export_model.py RUN_DIR [--out mld_core/weights/default] [--notes notes.md] [--model-id ID]
-        [--data DIR]
+        [--data DIR] [--vae-decoder VAE_RUN]
+
+--vae-decoder takes the decoder side of VAE_RUN's VAE, trained with only its decoder modules from RUN_DIR's VAE
+(``train vae --init RUN_DIR --config '{"train_modules": ["latent_positions", "decoder", "head"]}'``): the encoder,
+and so the denoiser's latents, stay RUN_DIR's; a VAE with another encoder is refused.
 
 The run's prompt-coverage index (coverage_index.npz, written by training) is copied; a run without one gets an
 index built from ``--data``'s train captions (mld_core.coverage), else the folder ships without one and reports
@@ -19,6 +23,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
@@ -26,7 +31,7 @@ sys.path.insert(0, str(REPO))
 
 from mld_core.checkpoint import DEFAULT_MODEL_DIR, CheckpointError, load_config, load_weights, save_model  # noqa: E402
 from mld_core.models.denoiser import LatentDenoiser  # noqa: E402
-from mld_core.models.vae import MotionVAE  # noqa: E402
+from mld_core.models.vae import MotionVAE, take_decoder  # noqa: E402
 
 CARD = """# {model_id}
 
@@ -71,6 +76,22 @@ def write_coverage_index(run: Path, folder: Path, config, data: Path | None) -> 
               file=sys.stderr)
 
 
+def swap_decoder(config, vae: MotionVAE, vae_run: Path) -> None:
+    """``vae`` takes the decoder side of ``vae_run``'s VAE (same encoder, same feature normalisation); the
+    provenance records that run's training."""
+    donor_config = load_config(vae_run)
+    if not all(a.shape == b.shape and np.allclose(a, b, rtol=1e-6, atol=0)
+               for a, b in zip(donor_config.mean_std, config.mean_std)):
+        raise ValueError("its feature normalisation (mean/std) is another data folder's")
+    donor = MotionVAE(donor_config.vae)
+    load_weights(vae_run / "vae.safetensors", donor)
+    take_decoder(vae, donor)
+    prov = donor_config.provenance
+    config.provenance["vae_decoder_training"] = prov.get("vae_training")
+    for key in ("vae_val_mpjpe_mm", "vae_val_global_mpjpe_mm", "vae_steps"):
+        config.provenance[f"{key}_decoder"] = prov.get(key)
+
+
 MODEL_FILES = {"config.json", "vae.safetensors", "denoiser.safetensors", "MODEL_CARD.md", "coverage_index.npz"}
 
 
@@ -97,6 +118,8 @@ def main(argv=None) -> int:
     ap.add_argument("--overwrite", action="store_true")
     ap.add_argument("--data", type=Path, default=None, help="data folder to build the coverage index from "
                     "(when the run has none)")
+    ap.add_argument("--vae-decoder", type=Path, default=None, help="a VAE run whose decoder side replaces the run's "
+                    "(its encoder must be the run's)")
     args = ap.parse_args(argv)
     try:
         config = load_config(args.run)
@@ -113,6 +136,12 @@ def main(argv=None) -> int:
     vae, den = MotionVAE(config.vae), LatentDenoiser(config.denoiser)
     load_weights(args.run / "vae.safetensors", vae)
     load_weights(args.run / "denoiser.safetensors", den)
+    if args.vae_decoder is not None:
+        try:
+            swap_decoder(config, vae, args.vae_decoder)
+        except (CheckpointError, ValueError) as exc:
+            print(f"error: --vae-decoder {args.vae_decoder}: {exc}", file=sys.stderr)
+            return 2
     if args.model_id:
         config.model_id = args.model_id
     prov = config.provenance

@@ -511,3 +511,68 @@ def test_train_modules_trains_only_the_named_modules_and_refuses_unknown_names(t
     for bad in ([], {"text_proj": 1}, 5, [""], ["text_proj", 3]):
         with pytest.raises(ValueError, match="train_modules must be"):
             DenoiserTrainConfig(train_modules=bad)
+
+
+def test_decoder_only_vae_fine_tune_keeps_the_encoder_and_swaps_in_under_the_denoiser(tmp_path, capsys):
+    """train vae with the decoder modules only: the encoder stays the --init model's bit for bit, so
+    export_model --vae-decoder pairs the new decoder with the model's denoiser; a VAE whose encoder moved is refused
+    in one line, and so is an unknown module name or another train_modules on --resume."""
+    import sys
+    from pathlib import Path
+
+    from safetensors.torch import load_file
+
+    from mld_core.models.vae import DECODER_MODULES, ENCODER_MODULES
+    from mld_core.testing import tiny_model
+    from test_reliability import _h3d_folder
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    import export_model
+
+    model = tiny_model(tmp_path / "tiny")
+    data = _h3d_folder(tmp_path / "data")
+    config = json.loads((model / "config.json").read_text())
+    np.save(data / "Mean.npy", np.asarray(config["mean"], np.float32))
+    np.save(data / "Std.npy", np.asarray(config["std"], np.float32))
+    np.save(data / "new_joint_vecs" / "000001.npy", np.random.default_rng(0).normal(size=(60, 263)).astype(np.float32))
+
+    def train(run, steps, modules, *extra):
+        settings = {"val_every": 100, "joint_weight": 1.0, "min_frames": 16}
+        if modules is not None:
+            settings["train_modules"] = modules
+        return main(["train", "vae", "--data", str(data), "--init", str(model), "--out", str(run), "--threads", "1",
+                     "--lr", "1e-2", "--steps", str(steps), "--config", json.dumps(settings), *extra])
+
+    run = tmp_path / "decoder_run"
+    assert train(run, 2, list(DECODER_MODULES)) == 0
+    capsys.readouterr()
+    assert train(run, 4, None, "--resume") == 2
+    assert "trained train_modules ['latent_positions', 'decoder', 'head']" in capsys.readouterr().err
+    assert train(run, 4, list(DECODER_MODULES), "--resume") == 0
+    start, tuned = load_file(str(model / "vae.safetensors")), load_file(str(run / "vae.safetensors"))
+    moved = sorted({k.split(".")[0] for k in start if not torch.equal(start[k].float(), tuned[k].float())})
+    assert moved == sorted(DECODER_MODULES)
+    capsys.readouterr()
+    assert train(tmp_path / "bad", 1, ["decoder", "heads"]) == 2
+    err = capsys.readouterr().err
+    assert "no module heads in this VAE" in err and "latent_positions" in err and not (tmp_path / "bad").exists()
+
+    shipped = tmp_path / "shipped"
+    assert export_model.main([str(model), "--out", str(shipped), "--vae-decoder", str(run)]) == 0
+    out = load_file(str(shipped / "vae.safetensors"))
+    for key, value in out.items():
+        source = tuned if key.split(".")[0] in DECODER_MODULES else start
+        assert torch.equal(value, source[key].half()), key
+    assert load_file(str(shipped / "denoiser.safetensors")).keys() == load_file(str(model / "denoiser.safetensors")).keys()
+    provenance = json.loads((shipped / "config.json").read_text())["provenance"]
+    assert provenance["vae_decoder_training"]["train_modules"] == list(DECODER_MODULES)
+
+    whole = tmp_path / "whole_run"
+    assert train(whole, 2, None) == 0
+    capsys.readouterr()
+    assert export_model.main([str(model), "--out", str(tmp_path / "refused"), "--vae-decoder", str(whole)]) == 2
+    err = capsys.readouterr().err
+    assert "another encoder" in err and "Traceback" not in err and not (tmp_path / "refused").exists()
+    everything = load_file(str(whole / "vae.safetensors"))
+    assert {k.split(".")[0] for k in start if not torch.equal(start[k].float(), everything[k].float())} \
+        >= set(ENCODER_MODULES)

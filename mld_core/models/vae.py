@@ -4,6 +4,9 @@ Encoder: [2n learnable distribution tokens ; Linear(features)] + positions -> Sk
 are mu, the next n are log-variance. Decoder: L positional queries attend to z (cross-attention memory) through a
 SkipTransformer and a Linear back to the feature size. Padding masks let any length up to ``max_frames`` through.
 Features are normalised (Mean/Std of the training folder) outside this module.
+
+The encoder side (ENCODER_MODULES) fixes the latents a denoiser learns; a decoder side trained on its own
+(``train vae`` with ``train_modules`` = DECODER_MODULES) can be swapped in under that denoiser (``take_decoder``).
 """
 
 from __future__ import annotations
@@ -43,6 +46,10 @@ class VAEConfig:
 def padding_mask(lengths: torch.Tensor, max_len: int) -> torch.Tensor:
     """(B,) lengths -> (B, max_len) bool, True where padded."""
     return torch.arange(max_len, device=lengths.device)[None, :] >= lengths[:, None]
+
+
+ENCODER_MODULES = ("embed", "distribution_tokens", "encoder")
+DECODER_MODULES = ("latent_positions", "decoder", "head")
 
 
 class MotionVAE(nn.Module):
@@ -104,3 +111,18 @@ class MotionVAE(nn.Module):
         kl = (-0.5 * (1 + logvar - mu**2 - logvar.exp())).sum(-1).mean()
         loss, parts = mse + self.config.kl_weight * kl, {"mse": mse.item(), "kl": kl.item()}
         return (loss, parts, recon) if return_recon else (loss, parts)
+
+
+def take_decoder(vae: MotionVAE, donor: MotionVAE) -> None:
+    """Copy ``donor``'s decoder side into ``vae``. Refused (ValueError) unless both have one config and one encoder
+    (equal at fp16, so a shipped fp16 folder matches the fp32 run it came from): another encoder makes other latents,
+    which the denoiser paired with ``vae`` never learned."""
+    if donor.config.to_dict() != vae.config.to_dict():
+        raise ValueError("the decoder comes from a VAE of another shape (its config differs)")
+    mine, theirs = vae.state_dict(), donor.state_dict()
+    changed = sorted({k.split(".")[0] for k in mine if k.split(".")[0] in ENCODER_MODULES
+                      and not torch.equal(mine[k].half(), theirs[k].half())})
+    if changed:
+        raise ValueError(f"the decoder's VAE has another encoder ({', '.join(changed)} differ): train it with "
+                         f"train_modules {list(DECODER_MODULES)} from this model")
+    vae.load_state_dict({k: theirs[k] if k.split(".")[0] in DECODER_MODULES else v for k, v in mine.items()})

@@ -1,4 +1,5 @@
-"""Pieces both training stages share: threads, seeds, resumable train state, content-balanced sampling."""
+"""Pieces both training stages share: threads, seeds, resumable train state, content-balanced sampling, and the
+choice of which modules train."""
 
 from __future__ import annotations
 
@@ -100,3 +101,37 @@ def lr_factor(progress: float, decay_start: float, floor: float = 0.1) -> float:
 def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
     for group in optimizer.param_groups:
         group["lr"] = lr
+
+
+def checked_module_names(modules) -> list | None:
+    """A ``train_modules`` setting as a list of names, or None for all; anything else is refused."""
+    if modules is None:
+        return None
+    if not isinstance(modules, (list, tuple)) or not modules or not all(isinstance(m, str) and m for m in modules):
+        raise ValueError("train_modules must be a non-empty list of module names, or null for all")
+    return list(modules)
+
+
+def trainable_parameters(model: torch.nn.Module, modules: list | None, what: str = "model") -> list:
+    """The parameters of the named top-level modules (all when ``modules`` is None); the rest are frozen."""
+    if modules is None:
+        return list(model.parameters())
+    known = sorted({name.split(".")[0] for name, _ in model.named_parameters()})
+    unknown = [m for m in modules if m not in known]
+    if unknown:
+        raise ValueError(f"train_modules: no module {', '.join(unknown)} in this {what} (it has {', '.join(known)})")
+    trained = []
+    for name, p in model.named_parameters():
+        p.requires_grad_(name.split(".")[0] in modules)
+        if p.requires_grad:
+            trained.append(p)
+    return trained
+
+
+def check_resumed_modules(out: Path, modules: list | None) -> None:
+    """--resume continues an optimiser over one set of modules: another ``train_modules`` is refused."""
+    saved = out / "train_config.json"
+    if saved.is_file():
+        before = json.loads(saved.read_text()).get("train_modules")
+        if before != modules:
+            raise ValueError(f"--resume: {out} trained train_modules {before}; resume it with the same setting")

@@ -29,8 +29,9 @@ from mld_core.data.captions import reworded
 from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import DDPMScheduler
-from mld_core.training.common import (Budget, balanced_weights, load_train_state, lr_factor, save_train_state, set_lr,
-                                     setup_torch)
+from mld_core.training.common import (Budget, balanced_weights, check_resumed_modules, checked_module_names,
+                                     load_train_state, lr_factor, save_train_state, set_lr, setup_torch,
+                                     trainable_parameters)
 from mld_core.training.vae import prepare_run_dir
 
 LATENT_CACHE = "latents.safetensors"
@@ -64,11 +65,7 @@ class DenoiserTrainConfig:
 
     def __post_init__(self):
         self.reworded_captions = inputs.int_in_range(self.reworded_captions, "reworded_captions", 0, 20)
-        if self.train_modules is not None:
-            if not isinstance(self.train_modules, (list, tuple)) or not self.train_modules \
-                    or not all(isinstance(m, str) and m for m in self.train_modules):
-                raise ValueError("train_modules must be a non-empty list of module names, or null for all")
-            self.train_modules = list(self.train_modules)
+        self.train_modules = checked_module_names(self.train_modules)
         if isinstance(self.denoiser, dict):
             self.denoiser = DenoiserConfig(**self.denoiser)
 
@@ -197,22 +194,6 @@ def _write_coverage_index(out: Path, units: list[Unit], encoder) -> None:
     index.save(out / coverage.INDEX_NAME)
 
 
-def trainable_parameters(model: torch.nn.Module, modules: list | None) -> list:
-    """The parameters of the named top-level modules (all when ``modules`` is None); the rest are frozen."""
-    if modules is None:
-        return list(model.parameters())
-    known = sorted({name.split(".")[0] for name, _ in model.named_parameters()})
-    unknown = [m for m in modules if m not in known]
-    if unknown:
-        raise ValueError(f"train_modules: no module {', '.join(unknown)} in this denoiser (it has {', '.join(known)})")
-    trained = []
-    for name, p in model.named_parameters():
-        p.requires_grad_(name.split(".")[0] in modules)
-        if p.requires_grad:
-            trained.append(p)
-    return trained
-
-
 def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     from mld_core.data.dataset import load_split
 
@@ -240,11 +221,9 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     dcfg.latent_tokens, dcfg.latent_dim, dcfg.max_frames = base.vae.latent_tokens, base.vae.latent_dim, base.max_frames
     if cfg.cond == "action":
         dcfg.num_actions = len(actions)
-    trainable_parameters(LatentDenoiser(dcfg), cfg.train_modules)  # names checked before the slow steps
-    if resume and (out / "train_config.json").is_file():
-        before = json.loads((out / "train_config.json").read_text()).get("train_modules")
-        if before != cfg.train_modules:
-            raise ValueError(f"--resume: {out} trained train_modules {before}; resume it with the same setting")
+    trainable_parameters(LatentDenoiser(dcfg), cfg.train_modules, "denoiser")  # names checked before the slow steps
+    if resume:
+        check_resumed_modules(out, cfg.train_modules)
 
     # 2. Frozen-encoder latents and caption embeddings, cached in the run folder.
     lat = _cached(out / LATENT_CACHE, lambda: encode_latents(vae, units, mean, std, cfg.crops_per_clip,
@@ -277,7 +256,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     if init is not None and not resume:
         load_weights(Path(cfg.init) / "denoiser.safetensors", denoiser)
     ema = copy.deepcopy(denoiser).requires_grad_(False)
-    trained = trainable_parameters(denoiser, cfg.train_modules)
+    trained = trainable_parameters(denoiser, cfg.train_modules, "denoiser")
     opt = torch.optim.AdamW(trained, lr=cfg.lr, weight_decay=0.01)
     step, extra = load_train_state(out, denoiser, opt) if resume else (0, {})
     if resume and (out / "denoiser.safetensors").is_file():

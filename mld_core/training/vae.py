@@ -22,8 +22,9 @@ from mld_core.checkpoint import ModelConfig, load_config, load_weights, save_jso
 from mld_core.models.vae import MotionVAE, VAEConfig
 from mld_core.motion import skeleton as sk
 from mld_core.motion.features import FOOT_CONTACT, ROOT_ROT_VEL, ROOT_Y, features_to_joints
-from mld_core.training.common import (Budget, balanced_weights, load_train_state, lr_factor, save_train_state, set_lr,
-                                     setup_torch)
+from mld_core.training.common import (Budget, balanced_weights, check_resumed_modules, checked_module_names,
+                                     load_train_state, lr_factor, save_train_state, set_lr, setup_torch,
+                                     trainable_parameters)
 
 ROOT_CHANNELS = slice(ROOT_ROT_VEL.start, ROOT_Y.stop)  # yaw velocity, xz velocity (facing frame), root height
 
@@ -58,6 +59,9 @@ class VAETrainConfig:
     # clip's canonical facing to its smoothed facing (a spike of ~5 degrees that random crops almost never show)
     clip_start_share: float = 0.0
     select_by: str = "mpjpe"  # the checkpoint kept as best: lowest val "mpjpe" (root-relative) or "mpjpe_sum" (+ global)
+    # the VAE's top-level modules to train; None: all. The decoder side alone (latent_positions, decoder, head) keeps
+    # the encoder and so every latent a denoiser learned: the fine-tuned decoder pairs with that denoiser unchanged
+    train_modules: list | None = None
     vae: VAEConfig = field(default_factory=VAEConfig)
 
     def __post_init__(self):
@@ -67,6 +71,7 @@ class VAETrainConfig:
             raise ValueError(f"select_by must be 'mpjpe' or 'mpjpe_sum', got {self.select_by!r}")
         self.clip_start_share = inputs.number_in_range(self.clip_start_share, "clip_start_share", 0.0, 1.0)
         self.root_weight = inputs.number_in_range(self.root_weight, "root_weight", 1e-6, 1e6)
+        self.train_modules = checked_module_names(self.train_modules)
 
 
 def feature_weights(feature_dim: int, root_weight: float) -> torch.Tensor | None:
@@ -213,7 +218,12 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
         if cfg.vae.feature_dim != int(mean.shape[0]):
             raise ValueError(f"--init {cfg.init} works on {cfg.vae.feature_dim}-d features, {cfg.data} has "
                              f"{int(mean.shape[0])}")
+    if resume and (out / "config.json").is_file():  # a resumed run keeps the architecture its weights were saved with
+        cfg.vae = load_config(out).vae
     cfg.vae.feature_dim = int(mean.shape[0])
+    trainable_parameters(MotionVAE(cfg.vae), cfg.train_modules, "VAE")  # names checked before the slow steps
+    if resume:
+        check_resumed_modules(out, cfg.train_modules)
     # the repairs and stepping the run's model keeps: its first sitting's when resumed, else the fine-tuned folder's
     keep_from = load_config(out) if resume and (out / "config.json").is_file() else init
     train = load_split(cfg.data, "train")
@@ -225,7 +235,8 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
     vae = MotionVAE(cfg.vae)
     if init is not None and not resume:
         load_weights(Path(cfg.init) / "vae.safetensors", vae)
-    opt = torch.optim.AdamW(vae.parameters(), lr=cfg.lr, weight_decay=0.0)
+    trained = trainable_parameters(vae, cfg.train_modules, "VAE")
+    opt = torch.optim.AdamW(trained, lr=cfg.lr, weight_decay=0.0)
     step, extra = (load_train_state(out, vae, opt) if resume else (0, {}))
     geometric = GeometricLoss(cfg, mean, std)
     weights = feature_weights(cfg.vae.feature_dim, cfg.root_weight)
@@ -249,7 +260,7 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
             loss, parts = loss + extra_loss, {**parts, **extra_parts}
         opt.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(vae.parameters(), 1.0)
+        torch.nn.utils.clip_grad_norm_(trained, 1.0)
         opt.step()
         step += 1
         frames_seen += x.shape[0] * x.shape[1]
