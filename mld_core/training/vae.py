@@ -218,8 +218,8 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
         if cfg.vae.feature_dim != int(mean.shape[0]):
             raise ValueError(f"--init {cfg.init} works on {cfg.vae.feature_dim}-d features, {cfg.data} has "
                              f"{int(mean.shape[0])}")
-    if resume and (out / "config.json").is_file():  # a resumed run keeps the architecture its weights were saved with
-        cfg.vae = load_config(out).vae
+    if resume and (out / "train_config.json").is_file():  # a resumed run keeps the architecture it started with
+        cfg.vae = VAEConfig(**json.loads((out / "train_config.json").read_text())["vae"])
     cfg.vae.feature_dim = int(mean.shape[0])
     trainable_parameters(MotionVAE(cfg.vae), cfg.train_modules, "VAE")  # names checked before the slow steps
     if resume:
