@@ -171,6 +171,30 @@ def test_geometric_terms_are_switches_that_train(folder, tmp_path):
     assert {"geo_contact", "geo_bones", "val_global_mpjpe_mm"} <= set(record)
 
 
+def test_contact_term_charges_a_planted_foot_for_sliding_not_for_lifting(folder):
+    import torch
+
+    from mld_core.motion import skeleton as sk
+    from mld_core.motion.features import FOOT_CONTACT, RIC
+    from mld_core.training.vae import GeometricLoss, VAETrainConfig
+
+    mean, std = np.load(folder / "Mean.npy").astype(np.float32), np.load(folder / "Std.npy").astype(np.float32)
+    feats = joints_to_features(_walk(40, 0.0, 0.0))  # standing still: both feet planted
+    assert (feats[:, FOOT_CONTACT] > 0.5).all()
+    term = GeometricLoss(VAETrainConfig(contact_weight=1.0), mean, std)
+    x = torch.from_numpy(((feats - mean) / std)[None].astype(np.float32))  # (1, T, F)
+    wobble = 0.05 * np.sin(np.linspace(0, 6, len(feats)))  # metres, per frame
+    def moved(axis: int) -> torch.Tensor:
+        f = feats.copy()
+        for j in sk.FOOT_LEFT + sk.FOOT_RIGHT:
+            f[:, RIC.start + 3 * (j - 1) + axis] += wobble  # the feet move relative to a still root
+        return torch.from_numpy(((f - mean) / std)[None].astype(np.float32))
+    assert term(x, x)[1]["geo_contact"] == pytest.approx(0.0, abs=1e-10)
+    assert term(moved(1), x)[1]["geo_contact"] == pytest.approx(0.0, abs=1e-10)  # lifted in place: no slide
+    slide = term(moved(0), x)[1]["geo_contact"]  # swayed sideways: slides
+    assert slide == pytest.approx((np.diff(wobble) ** 2).mean(), rel=0.01)  # the sway's squared speed per frame
+
+
 def test_draft_distillation_trains_resumes_and_installs(folder, tmp_path):
     import shutil
 

@@ -27,6 +27,7 @@ from mld_core.training.common import (Budget, balanced_weights, check_resumed_mo
                                      trainable_parameters)
 
 ROOT_CHANNELS = slice(ROOT_ROT_VEL.start, ROOT_Y.stop)  # yaw velocity, xz velocity (facing frame), root height
+HORIZONTAL = [0, 2]  # x and z of a joint position (y is up)
 
 
 @dataclass
@@ -50,7 +51,7 @@ class VAETrainConfig:
     # geometric terms (MDM, Tevet et al. 2023) on the decoded joints, metres; 0 turns a term off
     joint_weight: float = 0.0  # MSE of the global joints (includes the integrated root trajectory)
     velocity_weight: float = 0.0  # MSE of the joints' frame-to-frame velocity
-    contact_weight: float = 0.0  # squared velocity of foot joints where the real clip's contact channels say contact
+    contact_weight: float = 0.0  # squared horizontal velocity of foot joints where the real clip says contact
     bone_weight: float = 0.0  # squared error of every bone's length against the real clip's
     # weight of the root channels (yaw velocity, xz velocity, height) in the feature MSE; their integral is the
     # take's global trajectory, so 1 (one channel among 263) lets the latent drop most of the turning (issue 15)
@@ -106,7 +107,8 @@ class GeometricLoss:
         terms["velocity"] = ((vel_pred - vel_real) ** 2).sum(-1).mean()
         feet = list(sk.FOOT_LEFT) + list(sk.FOOT_RIGHT)
         contact = ((x.float() * self.std + self.mean)[:, :-1, FOOT_CONTACT] > 0.5).float()  # (B, L-1, 4)
-        terms["contact"] = ((vel_pred[:, :, feet] ** 2).sum(-1) * contact).mean()
+        slide = vel_pred[:, :, feet][..., HORIZONTAL]  # (B, L-1, 4, 2): a planted foot may still lift, not slide
+        terms["contact"] = ((slide ** 2).sum(-1) * contact).mean()
         bone_pred = (pred[:, :, 1:] - pred[:, :, parents]).norm(dim=-1)  # (B, L, 21)
         bone_real = (real[:, :, 1:] - real[:, :, parents]).norm(dim=-1)
         terms["bones"] = ((bone_pred - bone_real) ** 2).mean()
