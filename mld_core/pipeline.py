@@ -214,6 +214,18 @@ class MLDPipeline:
     def denormalize(self, features: np.ndarray) -> np.ndarray:
         return features * self.std + self.mean
 
+    @torch.inference_mode()
+    def features_to_latents(self, features: Sequence[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Denormalised feature clips [(T_i, F)] -> their VAE means in diffusion space (B, n, d) and lengths (B,):
+        the inverse of ``latents_to_features`` (a reconstruction is one after the other)."""
+        lengths = torch.tensor([len(f) for f in features])
+        x = np.zeros((len(features), int(lengths.max()), self.config.vae.feature_dim), np.float32)  # (B, T, F)
+        for i, f in enumerate(features):
+            x[i, : len(f)] = self.normalize(f)
+        mu, _ = self.vae.encode(torch.from_numpy(x).to(self.device), lengths.to(self.device))  # (B, n, d)
+        return (mu.float() - self.config.latent_mean) * self.config.latent_scale, lengths
+
+    @torch.no_grad()
     def latents_to_features(self, z: torch.Tensor, lengths: torch.Tensor, draft: bool = False) -> np.ndarray:
         """Diffusion-space latents (B, n, d) -> denormalised features (B, T, F), zero beyond each length; ``draft``
         decodes with the Draft's decoder (its precision)."""

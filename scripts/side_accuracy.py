@@ -360,12 +360,7 @@ def vae_reconstruct(pipe, clips: dict, lengths: list, max_clips: int, batch: int
         for a in range(0, len(items), batch):
             chunk = items[a:a + batch]
             feats = [np.load(c["features"]).astype(np.float32)[:max_frames] for _, c in chunk]
-            n = torch.tensor([len(f) for f in feats])
-            x = np.zeros((len(feats), int(n.max()), feats[0].shape[1]), np.float32)  # (B, T, F)
-            for i, f in enumerate(feats):
-                x[i, : len(f)] = pipe.normalize(f)
-            mu, _ = pipe.vae.encode(torch.from_numpy(x).to(pipe.device), n.to(pipe.device))  # (B, n, d)
-            z = (mu - pipe.config.latent_mean) * pipe.config.latent_scale
+            z, n = pipe.features_to_latents(feats)  # (B, n, d) diffusion-space latents, (B,) lengths
             for length in lengths:
                 if length == "clip":
                     out_n = n

@@ -61,13 +61,11 @@ def straight_knee_share(joints: np.ndarray, degrees: float = 3.0) -> float:
 
 
 def reconstruct(pipe: MLDPipeline, features: list[np.ndarray]) -> list[np.ndarray]:
+    """Each clip encoded (its VAE mean) and decoded at its own length."""
     out = []
     for f in features:
-        x = torch.from_numpy(pipe.normalize(f)[None].astype(np.float32))  # (1, T, F)
-        lengths = torch.tensor([len(f)])
-        with torch.no_grad():
-            mu, _ = pipe.vae.encode(x, lengths)
-            out.append(pipe.latents_to_features(mu, lengths)[0, : len(f)])
+        z, lengths = pipe.features_to_latents([f])  # (1, n, d) diffusion-space latent
+        out.append(pipe.latents_to_features(z, lengths)[0, : len(f)])
     return out
 
 
