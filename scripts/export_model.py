@@ -7,6 +7,8 @@
 (``train vae --init RUN_DIR --config '{"train_modules": ["latent_positions", "decoder", "head"]}'``): the encoder,
 and so the denoiser's latents, stay RUN_DIR's; a VAE with another encoder is refused.
 
+A model folder's Draft (draft.safetensors, draft_text.safetensors) is exported with it.
+
 The run's prompt-coverage index (coverage_index.npz, written by training) is copied; a run without one gets an
 index built from ``--data``'s train captions (mld_core.coverage), else the folder ships without one and reports
 coverage as unavailable.
@@ -29,9 +31,11 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from mld_core.checkpoint import DEFAULT_MODEL_DIR, CheckpointError, load_config, load_weights, save_model  # noqa: E402
+from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, CheckpointError, load_config,  # noqa: E402
+                                 load_weights, save_model, save_weights)
 from mld_core.models.denoiser import LatentDenoiser  # noqa: E402
 from mld_core.models.vae import MotionVAE, take_decoder  # noqa: E402
+from mld_core.training.draft import DRAFT_WEIGHTS  # noqa: E402
 
 CARD = """# {model_id}
 
@@ -74,6 +78,22 @@ def write_coverage_index(run: Path, folder: Path, config, data: Path | None) -> 
     else:
         print(f"note: {run} has no {coverage.INDEX_NAME}; pass --data DIR to build one (coverage: unavailable)",
               file=sys.stderr)
+
+
+def draft_of(run: Path, config) -> LatentDenoiser | None:
+    """The Draft denoiser of a model folder that has one (it samples the same latents, so it serves a swapped-in
+    decoder too); a config naming a Draft whose weights are missing loses the Draft."""
+    if config.draft is None:
+        return None
+    if not (run / DRAFT_WEIGHTS).is_file():
+        print(f"note: {run} has no {DRAFT_WEIGHTS}: exported without a Draft")
+        config.draft = None
+        return None
+    student = LatentDenoiser(config.draft.denoiser)
+    load_weights(run / DRAFT_WEIGHTS, student)
+    if not (run / DRAFT_TEXT_WEIGHTS).is_file():
+        config.draft.text_layers = None  # the Draft reads the prompt with the full text encoder
+    return student
 
 
 def swap_decoder(config, vae: MotionVAE, vae_run: Path) -> None:
@@ -142,6 +162,7 @@ def main(argv=None) -> int:
         except (CheckpointError, ValueError) as exc:
             print(f"error: --vae-decoder {args.vae_decoder}: {exc}", file=sys.stderr)
             return 2
+    draft = draft_of(args.run, config)
     if args.model_id:
         config.model_id = args.model_id
     prov = config.provenance
@@ -159,6 +180,10 @@ def main(argv=None) -> int:
     try:
         save_model(tmp, config, vae, den, dtype=torch.float16, card=card)
         write_coverage_index(args.run, tmp, config, args.data)
+        if draft is not None:
+            save_weights(tmp / DRAFT_WEIGHTS, draft, torch.float16)
+            if config.draft.text_layers is not None:
+                shutil.copyfile(args.run / DRAFT_TEXT_WEIGHTS, tmp / DRAFT_TEXT_WEIGHTS)
         if args.out.exists():
             shutil.rmtree(args.out)
         tmp.chmod(0o755)

@@ -553,7 +553,7 @@ def test_decoder_only_vae_fine_tune_keeps_the_encoder_and_swaps_in_under_the_den
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
     import export_model
 
-    model = tiny_model(tmp_path / "tiny")
+    model = tiny_model(tmp_path / "tiny", draft=True)
     data = _h3d_folder(tmp_path / "data")
     config = json.loads((model / "config.json").read_text())
     np.save(data / "Mean.npy", np.asarray(config["mean"], np.float32))
@@ -590,6 +590,11 @@ def test_decoder_only_vae_fine_tune_keeps_the_encoder_and_swaps_in_under_the_den
     assert load_file(str(shipped / "denoiser.safetensors")).keys() == load_file(str(model / "denoiser.safetensors")).keys()
     provenance = json.loads((shipped / "config.json").read_text())["provenance"]
     assert provenance["vae_decoder_training"]["train_modules"] == list(DECODER_MODULES)
+    draft = load_file(str(model / "draft.safetensors"))  # the Draft samples the same latents: it comes along
+    assert all(torch.equal(v, draft[k].half()) for k, v in load_file(str(shipped / "draft.safetensors")).items())
+    from mld_core.pipeline import MLDPipeline
+    take = MLDPipeline.from_pretrained(shipped)(["a person walks"], seconds=1.0, draft=True)
+    assert take.joints.shape == (1, 20, 22, 3)
 
     whole = tmp_path / "whole_run"
     assert train(whole, 2, None) == 0
