@@ -348,12 +348,10 @@ def _load_script(rootpath):
     return mod
 
 
-def test_side_accuracy_script_end_to_end(bandai_clips, tmp_path, request, capsys):
-    """A tiny HumanML3D-format folder from the fixture clips, scored real-only and with a tiny random model."""
+def _labelled_folder(bandai_clips, root):
+    """A tiny HumanML3D-format test split from two fixture clips and their mirrors, with actions.json."""
     from mld_core.motion.features import joints_to_features
-    from mld_core.testing import tiny_model
 
-    root = tmp_path / "data"
     (root / "new_joints").mkdir(parents=True)
     (root / "new_joint_vecs").mkdir()
     (root / "texts").mkdir()
@@ -372,7 +370,14 @@ def test_side_accuracy_script_end_to_end(bandai_clips, tmp_path, request, capsys
             labels[cid] = lab
     (root / "test.txt").write_text("\n".join(labels) + "\n", encoding="utf-8")
     (root / "actions.json").write_text(json.dumps({"classes": sorted(set(labels.values())), "clips": labels}))
+    return root
 
+
+def test_side_accuracy_script_end_to_end(bandai_clips, tmp_path, request, capsys):
+    """A tiny HumanML3D-format folder from the fixture clips, scored real-only and with a tiny random model."""
+    from mld_core.testing import tiny_model
+
+    root = _labelled_folder(bandai_clips, tmp_path / "data")
     script = _load_script(request.config.rootpath)
     contents = "wave-right-hand,wave-left-hand,walk-turn-left,walk-turn-right"
     out = tmp_path / "real.json"
@@ -471,3 +476,29 @@ def test_valid_references_leave_out_only_the_captions_of_clips_that_fail_their_o
 def _test_clip(cid: str, joints) -> dict:
     return {"id": cid, "joints": joints, "captions": [f"caption of {cid}"], "seconds": len(joints) / FPS,
             "split": "test"}
+
+
+def test_skating_source_reconstructs_through_diffusion_space(bandai_clips, tmp_path, request):
+    """scripts/skating_source.py's VAE rows decode each clip's own VAE mean (whatever the latent normalisation)."""
+    import torch
+
+    from mld_core.pipeline import MLDPipeline
+    from mld_core.testing import tiny_model
+
+    root = _labelled_folder(bandai_clips, tmp_path / "data")
+    spec = importlib.util.spec_from_file_location("skating_source", request.config.rootpath / "scripts" / "skating_source.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    model = tiny_model(tmp_path / "tiny")
+    out = tmp_path / "source.json"
+    assert script.main(["--data", str(root), "--model", str(model), "--clips", "1", "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())
+    assert set(rows) == {"walk-turn-left", "walk-turn-right"}
+    assert all(np.isfinite(v) for r in rows.values() for row in r.values() for v in row.values())
+    pipe = MLDPipeline.from_pretrained(model)
+    pipe.config.latent_scale, pipe.config.latent_mean = 1.7, -0.3
+    clip = np.load(root / "new_joint_vecs" / "dataset-2_walk-turn-left_normal_027.npy")
+    with torch.inference_mode():
+        mu, _ = pipe.vae.encode(torch.from_numpy(pipe.normalize(clip))[None], torch.tensor([len(clip)]))
+        direct = pipe.denormalize(pipe.vae.decode(mu, torch.tensor([len(clip)])).numpy())[0]
+    np.testing.assert_allclose(script.reconstruct(pipe, [clip])[0], direct, atol=1e-4)
