@@ -7,7 +7,8 @@
 (``train vae --init RUN_DIR --config '{"train_modules": ["latent_positions", "decoder", "head"]}'``): the encoder,
 and so the denoiser's latents, stay RUN_DIR's; a VAE with another encoder is refused.
 
-A model folder's Draft (draft.safetensors, draft_text.safetensors) is exported with it.
+A model folder's Draft (draft.safetensors, draft_text.safetensors) is exported with it; a config naming a Draft
+whose draft.safetensors is missing is refused.
 
 The run's prompt-coverage index (coverage_index.npz, written by training) is copied; a run without one gets an
 index built from ``--data``'s train captions (mld_core.coverage), else the folder ships without one and reports
@@ -32,10 +33,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, CheckpointError, load_config,  # noqa: E402
-                                 load_weights, save_model, save_weights)
+                                 load_weights, save_model)
 from mld_core.models.denoiser import LatentDenoiser  # noqa: E402
 from mld_core.models.vae import MotionVAE, take_decoder  # noqa: E402
-from mld_core.training.draft import DRAFT_WEIGHTS  # noqa: E402
+from mld_core.training.draft import DRAFT_WEIGHTS, install_draft  # noqa: E402
 
 CARD = """# {model_id}
 
@@ -78,22 +79,6 @@ def write_coverage_index(run: Path, folder: Path, config, data: Path | None) -> 
     else:
         print(f"note: {run} has no {coverage.INDEX_NAME}; pass --data DIR to build one (coverage: unavailable)",
               file=sys.stderr)
-
-
-def draft_of(run: Path, config) -> LatentDenoiser | None:
-    """The Draft denoiser of a model folder that has one (it samples the same latents, so it serves a swapped-in
-    decoder too); a config naming a Draft whose weights are missing loses the Draft."""
-    if config.draft is None:
-        return None
-    if not (run / DRAFT_WEIGHTS).is_file():
-        print(f"note: {run} has no {DRAFT_WEIGHTS}: exported without a Draft")
-        config.draft = None
-        return None
-    student = LatentDenoiser(config.draft.denoiser)
-    load_weights(run / DRAFT_WEIGHTS, student)
-    if not (run / DRAFT_TEXT_WEIGHTS).is_file():
-        config.draft.text_layers = None  # the Draft reads the prompt with the full text encoder
-    return student
 
 
 def swap_decoder(config, vae: MotionVAE, vae_run: Path) -> None:
@@ -162,7 +147,9 @@ def main(argv=None) -> int:
         except (CheckpointError, ValueError) as exc:
             print(f"error: --vae-decoder {args.vae_decoder}: {exc}", file=sys.stderr)
             return 2
-    draft = draft_of(args.run, config)
+    if config.draft is not None and not (args.run / DRAFT_WEIGHTS).is_file():
+        print(f"error: {args.run} names a Draft in config.json but has no {DRAFT_WEIGHTS}", file=sys.stderr)
+        return 2
     if args.model_id:
         config.model_id = args.model_id
     prov = config.provenance
@@ -180,10 +167,10 @@ def main(argv=None) -> int:
     try:
         save_model(tmp, config, vae, den, dtype=torch.float16, card=card)
         write_coverage_index(args.run, tmp, config, args.data)
-        if draft is not None:
-            save_weights(tmp / DRAFT_WEIGHTS, draft, torch.float16)
-            if config.draft.text_layers is not None:
+        if config.draft is not None:  # the Draft samples the same latents, so it serves a swapped-in decoder too
+            if (args.run / DRAFT_TEXT_WEIGHTS).is_file():
                 shutil.copyfile(args.run / DRAFT_TEXT_WEIGHTS, tmp / DRAFT_TEXT_WEIGHTS)
+            install_draft(args.run, tmp)
         if args.out.exists():
             shutil.rmtree(args.out)
         tmp.chmod(0o755)

@@ -541,6 +541,7 @@ def test_decoder_only_vae_fine_tune_keeps_the_encoder_and_swaps_in_under_the_den
     """train vae with the decoder modules only: the encoder stays the --init model's bit for bit, so
     export_model --vae-decoder pairs the new decoder with the model's denoiser; a VAE whose encoder moved is refused
     in one line, and so is an unknown module name or another train_modules on --resume."""
+    import shutil
     import sys
     from pathlib import Path
 
@@ -595,6 +596,13 @@ def test_decoder_only_vae_fine_tune_keeps_the_encoder_and_swaps_in_under_the_den
     from mld_core.pipeline import MLDPipeline
     take = MLDPipeline.from_pretrained(shipped)(["a person walks"], seconds=1.0, draft=True)
     assert take.joints.shape == (1, 20, 22, 3)
+    broken = tmp_path / "no_draft_weights"
+    shutil.copytree(model, broken)
+    (broken / "draft.safetensors").unlink()
+    capsys.readouterr()
+    assert export_model.main([str(broken), "--out", str(tmp_path / "refused_draft")]) == 2
+    assert "names a Draft in config.json but has no draft.safetensors" in capsys.readouterr().err
+    assert not (tmp_path / "refused_draft").exists()
 
     whole = tmp_path / "whole_run"
     assert train(whole, 2, None) == 0
