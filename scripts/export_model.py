@@ -85,7 +85,7 @@ def swap_decoder(config, vae: MotionVAE, vae_run: Path) -> None:
     """``vae`` takes the decoder side of ``vae_run``'s VAE (same encoder, same feature normalisation); the
     provenance records that run's training."""
     donor_config = load_config(vae_run)
-    if not all(a.shape == b.shape and np.allclose(a, b, rtol=1e-6, atol=0)
+    if not all(a.shape == b.shape and np.allclose(a, b, rtol=1e-6, atol=1e-9)  # atol: a zero mean read back as 3e-18
                for a, b in zip(donor_config.mean_std, config.mean_std)):
         raise ValueError("its feature normalisation (mean/std) is another data folder's")
     donor = MotionVAE(donor_config.vae)

@@ -591,6 +591,16 @@ def test_decoder_only_vae_fine_tune_keeps_the_encoder_and_swaps_in_under_the_den
     assert load_file(str(shipped / "denoiser.safetensors")).keys() == load_file(str(model / "denoiser.safetensors")).keys()
     provenance = json.loads((shipped / "config.json").read_text())["provenance"]
     assert provenance["vae_decoder_training"]["train_modules"] == list(DECODER_MODULES)
+    for shift, accepted in ((3e-18, True), (1e-3, False)):  # float noise of a re-prepared folder vs another folder
+        donor = tmp_path / f"donor_{shift}"
+        shutil.copytree(run, donor)
+        donor_config = json.loads((donor / "config.json").read_text())
+        donor_config["mean"][0] += shift
+        (donor / "config.json").write_text(json.dumps(donor_config))
+        capsys.readouterr()
+        code = export_model.main([str(model), "--out", str(tmp_path / f"out_{shift}"), "--vae-decoder", str(donor)])
+        assert code == (0 if accepted else 2), shift
+        assert accepted or "another data folder's" in capsys.readouterr().err
     draft = load_file(str(model / "draft.safetensors"))  # the Draft samples the same latents: it comes along
     assert all(torch.equal(v, draft[k].half()) for k, v in load_file(str(shipped / "draft.safetensors")).items())
     from mld_core.pipeline import MLDPipeline
