@@ -1,7 +1,7 @@
 """Do directed takes step? Foot skating of takes on a root path, looped takes and prompt sequences, with and without
 stepping (MLDPipeline.step_feet), on the bundled model (a measurement: prints a table, asserts nothing).
 
-    .venv/bin/python scripts/directed_skating.py [--seeds 8] [--threads 1] [--json out.json]
+    .venv/bin/python scripts/directed_skating.py [--model DIR] [--seeds 8] [--threads 1] [--json out.json]
 
 Each case runs ``--seeds`` seeds twice, ``step=True`` and ``step=False`` (everything else the same: the
 constraints' own refinement and the repairs). Columns: the mean foot skating ratio (mld_core.eval.quality), the
@@ -64,6 +64,7 @@ def cases(pipe, seeds: int, step: bool):
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", default=None, help="model folder (default: the bundled model)")
     parser.add_argument("--seeds", type=int, default=8)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--json", type=Path, default=None)
@@ -73,7 +74,7 @@ def main(argv=None) -> int:
     from mld_core.pipeline import MLDPipeline
 
     torch.set_num_threads(args.threads)
-    pipe = MLDPipeline.from_pretrained()
+    pipe = MLDPipeline.from_pretrained(args.model)
     rows = {True: dict(cases(pipe, args.seeds, True)), False: dict(cases(pipe, args.seeds, False))}
     print(f"{pipe.model_id}, {args.seeds} seeds a case; stepped / not stepped")
     print(f"{'case':34s} {'skating':>15s} {'met':>11s} {'s per take':>13s}")

@@ -66,7 +66,10 @@ def test_a_constrained_batch_equals_single_runs(pipe):
     kw = dict(seconds=3, num_inference_steps=2, constraints=looped, step=False)
     batch = pipe(["a person walks", "a person runs", "a person waves"], seed=[4, 5, 6], **kw)
     single = pipe("a person runs", seed=5, **kw)
-    np.testing.assert_allclose(single.features[0], batch.features[1], atol=1e-4)  # the planted feet: per take
+    # the planted feet: per take. 20 Adam steps on the features amplify the float differences of batched and
+    # single matrix products (1e-6 before them) to 2e-4 on CPUs with AMX, so the bound is 1e-3; takes differ by 5e-2
+    np.testing.assert_allclose(single.features[0], batch.features[1], atol=1e-3)
+    assert np.abs(single.features[0] - batch.features[0]).max() > 1e-2  # the bound tells takes apart
 
 
 def test_each_takes_planted_feet_count_on_their_own():
@@ -194,13 +197,14 @@ def test_a_walk_on_a_path_keeps_its_legs_and_its_footing():  # the bundled model
     pipe = MLDPipeline.from_pretrained()
     path = RootPath([0, 79], np.array([[0.0, 0.0], [0.0, 4.8]]))  # 1.2 m/s straight ahead for 4 s
     pipe.config.stepping = replace(pipe.config.stepping, steps=0)  # the constraints alone (no stepping): compare with
-    free = pipe("a person walks forward", seconds=4, seed=0, num_variants=2)  # free takes sampled the same way
-    out = pipe("a person walks forward", seconds=4, seed=0, num_variants=2, constraints=Constraints([path]))
+    free = pipe("a person walks forward", seconds=4, seed=0, num_variants=8)  # free takes sampled the same way
+    out = pipe("a person walks forward", seconds=4, seed=0, num_variants=8, constraints=Constraints([path]))
     assert all(met for row in out.residuals for _, _, met in row)
-    # without the bone term the planted-feet term stretches shins to 0.6 m: bone SD 48 mm, skating 1.4x free
+    # without the bone term the planted-feet term stretches shins to 0.6 m: bone SD 48 mm, skating 2.4x free over
+    # these 8 takes (with it 1.23x on v3.1, 1.25x on v3.2; 2 takes alone ranged 0.74x-1.46x)
     assert max(_bone_sd_mm(j) for j in out.joints) < 5.0
     skating = np.mean([foot_skating_ratio(j) for j in out.joints])
-    assert skating <= 1.2 * np.mean([foot_skating_ratio(j) for j in free.joints])
+    assert skating <= 1.5 * np.mean([foot_skating_ratio(j) for j in free.joints])
 
 
 @pytest.mark.slow
