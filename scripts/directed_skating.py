@@ -71,10 +71,15 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     import torch
 
+    from mld_core.checkpoint import CheckpointError
     from mld_core.pipeline import MLDPipeline
 
     torch.set_num_threads(args.threads)
-    pipe = MLDPipeline.from_pretrained(args.model)
+    try:
+        pipe = MLDPipeline.from_pretrained(args.model)
+    except CheckpointError as exc:
+        print(f"error: --model {args.model}: {exc}", file=sys.stderr)
+        return 2
     rows = {True: dict(cases(pipe, args.seeds, True)), False: dict(cases(pipe, args.seeds, False))}
     print(f"{pipe.model_id}, {args.seeds} seeds a case; stepped / not stepped")
     print(f"{'case':34s} {'skating':>15s} {'met':>11s} {'s per take':>13s}")
