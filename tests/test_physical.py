@@ -500,13 +500,11 @@ def test_skating_source_reconstructs_through_diffusion_space(bandai_clips, tmp_p
     np.testing.assert_allclose(script.reconstruct(pipe, [clip])[0], expected, atol=1e-5)
 
 
-def test_directed_skating_refuses_a_missing_model_folder_in_one_line(tmp_path, capsys):
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-    import directed_skating
-
-    assert directed_skating.main(["--model", str(tmp_path / "none"), "--seeds", "1"]) == 2
+def test_directed_skating_refuses_a_missing_model_folder_in_one_line(tmp_path, capsys, request):
+    spec = importlib.util.spec_from_file_location("directed_skating",
+                                                  request.config.rootpath / "scripts" / "directed_skating.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    assert script.main(["--model", str(tmp_path / "none"), "--seeds", "1"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: --model") and "not found" in err and "Traceback" not in err
