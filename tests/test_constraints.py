@@ -85,6 +85,13 @@ def test_each_takes_planted_feet_count_on_their_own():
     torch.testing.assert_close(planted_foot_speed(joints, contacts), (singles[0] + singles[1]) / 2)
 
 
+def test_the_feet_slide_weighs_less_with_pose_keys():
+    path, keys = RootPath([0, 39], np.array([[0.0, 0.0], [0.0, 1.0]])), PoseKeys({10: {"pelvis": [0.0, 0.9, 0.0]}})
+    assert Constraints([path, Loop()]).latent_slide_weight() == Constraints().slide_weight
+    assert Constraints([path, keys]).latent_slide_weight() == Constraints().keyed_slide_weight
+    assert Constraints([keys], keyed_slide_weight=0.5).latent_slide_weight() == 0.5
+
+
 def test_constraints_beyond_the_take_are_refused(pipe):
     with pytest.raises(InputError, match="reaches frame 80"):
         pipe("a person walks", seconds=3, num_inference_steps=2, constraints=Constraints([PoseKeys({80: {"head": [0, 1, 0]}})]))
@@ -201,11 +208,27 @@ def test_a_walk_on_a_path_keeps_its_legs_and_its_footing():  # the bundled model
     out = pipe("a person walks forward", seconds=4, seed=0, num_variants=8, constraints=Constraints([path]))
     assert all(met for row in out.residuals for _, _, met in row)
     # without the bone term the planted-feet term stretches the legs: bone SD 57 mm, skating 2.4x free over these 8
-    # takes on v3.2, 3.1x on v3.3; with it 1.23x on v3.1, 1.25x on v3.2, 1.68x on v3.3 (its path takes skate more:
-    # 0.269 against v3.2's 0.206, free takes 0.160 against 0.165; docs/evaluation.md, "v3.3")
+    # takes on v3.2, 3.1x on v3.3; with it 1.23x on v3.1, 1.25x on v3.2, 1.68x on v3.3 (the bound was 2.0x then),
+    # 1.23x on v3.4 (path 0.210, free 0.171; docs/evaluation.md, "v3.3" and "v3.4")
     assert max(_bone_sd_mm(j) for j in out.joints) < 5.0
     skating = np.mean([foot_skating_ratio(j) for j in out.joints])
-    assert skating <= 2.0 * np.mean([foot_skating_ratio(j) for j in free.joints])
+    assert skating <= 1.5 * np.mean([foot_skating_ratio(j) for j in free.joints])
+
+
+@pytest.mark.slow
+def test_stepped_paths_and_loops_keep_their_feet_planted():  # the bundled model
+    from mld_core.eval.quality import foot_skating_ratio
+    from mld_core.pipeline import MLDPipeline
+
+    pipe = MLDPipeline.from_pretrained()
+    bend = RootPath([0, 40, 79], np.array([[0.0, 0.0], [0.0, 2.4], [-2.0, 4.0]]))
+    for prompt, seconds, item, bound in (("a person walks forward", 4, bend, 0.05),
+                                         ("a person walks forward", 2, Loop(), 0.10)):
+        out = pipe(prompt, seconds=seconds, seed=0, num_variants=8, constraints=Constraints([item]))
+        assert all(met for row in out.residuals for _, _, met in row)
+        # the feet's slide in the latent stage's cost (Constraints.slide_weight; scripts/directed_skating.py): on
+        # v3.4, seeds 0-7, the bend skated 0.085 and the walk cycle 0.157 at weight 0.03, 0.006 and 0.054 at 1.0
+        assert np.mean([foot_skating_ratio(j) for j in out.joints]) <= bound
 
 
 @pytest.mark.slow
