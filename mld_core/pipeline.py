@@ -348,6 +348,7 @@ class MLDPipeline:
             def decode(latent):  # (B, n, d) -> normalised features (B, T, F)
                 return self._decode_with_grad(latent, lengths)
 
+            slide_weight = constraints.latent_slide_weight()
             z_opt = z0.clone().requires_grad_(True)
             opt = torch.optim.Adam([z_opt], lr=constraints.lr)
             for _ in range(constraints.steps):  # 5a. the latent
@@ -356,7 +357,7 @@ class MLDPipeline:
                 loss = constraints.cost(joints) + constraints.prior_weight * ((z_opt - z0) ** 2).mean()
                 if stepping is not None:
                     valid = valid_frames(lengths, joints.shape[1])
-                    loss = loss + constraints.latent_slide_weight() * slide_cost(joints, valid, stepping).mean()
+                    loss = loss + slide_weight * slide_cost(joints, valid, stepping).mean()
                 # x B: every term is a mean over the takes, so each take's gradient is its own cost's, whatever the
                 # batch (a batch equals single runs); the latent's gradient only, not the decoder's weights'
                 (loss * len(z0)).backward(inputs=[z_opt])
