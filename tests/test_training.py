@@ -463,7 +463,7 @@ def test_rewording_brings_in_no_wording_of_the_held_out_paraphrases():
     import sys
     from pathlib import Path
 
-    from mld_core.data.captions import CONTENTS, STYLES, SYNONYMS, captions_for
+    from mld_core.data.captions import CONTENTS, STYLES, SYNONYMS, TURN_VERBS, captions_for
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
     from side_accuracy import PARAPHRASES
@@ -471,9 +471,32 @@ def test_rewording_brings_in_no_wording_of_the_held_out_paraphrases():
     held_out = " | ".join(p.lower() for texts in PARAPHRASES.values() for p in texts)
     captions = " | ".join(c.lower() for content in CONTENTS for style in STYLES for i in range(8)
                           for c in captions_for(content, style, f"x_{content}_{style}_{i:03d}"))
-    leaked = [option for word, options in SYNONYMS.items() if word not in ("his", "their") for option in options
+    options = [option for word, options in SYNONYMS.items() if word not in ("his", "their") for option in options]
+    leaked = [option for option in options + list(TURN_VERBS)
               if re.search(rf"\b{re.escape(option)}\b", held_out) and not re.search(rf"\b{re.escape(option)}\b", captions)]
     assert leaked == []
+    assert not {"veers", "swerves", "changes", "direction"} & {w for verb in TURN_VERBS for w in verb.split()}
+
+
+def test_turn_rewording_says_turning_to_a_side_in_other_verbs_and_keeps_the_side():
+    from mld_core.data.captions import TURN_VERBS, reworded
+    from mld_core.training.denoiser import Unit, with_reworded_captions
+
+    rng = np.random.default_rng(0)
+    caption = "a person walks forward and turns to the left."
+    with_turns = [reworded(caption, rng, turns=True) for _ in range(200)]
+    assert all(t.endswith("to the left.") for t in with_turns)
+    assert {verb for verb in TURN_VERBS if any(f" {verb} to the left" in t for t in with_turns)} == set(TURN_VERBS)
+    plain = [reworded(caption, rng) for _ in range(200)]
+    assert not any(f" {verb} to the left" in t for t in plain for verb in TURN_VERBS)
+    # "turns" that is not a turn to a side stays a turn
+    for other in ("a person performs a dance with lots of turns.", "someone turns around."):
+        assert not any(verb in reworded(other, rng, turns=True) for _ in range(50) for verb in TURN_VERBS)
+    units = [Unit(features=np.zeros((40, 263), np.float32), label="walk-turn-right",
+                  captions=["someone walks and turns right."])]
+    texts = with_reworded_captions(units, 8, seed=0, turns=True)[0]
+    assert any(f" {verb} right." in t for t in texts for verb in TURN_VERBS), texts
+    assert with_reworded_captions(units, 8, seed=0)[0] != texts  # the switch changes what trains
 
 
 def test_caption_embedding_cache_is_remade_for_another_caption_list(tmp_path):

@@ -525,14 +525,24 @@ SYNONYMS = {"walks": ("paces", "moves", "goes"), "runs": ("jogs", "sprints", "da
             "happily": ("cheerfully", "with joy"), "angrily": ("furiously", "in anger")}
 
 
-def reworded(caption: str, rng: np.random.Generator) -> str:
+# Verbs users write for a change of direction to a side ("curves to the left", "heads right"): with turns=True a
+# rewording puts one, half the time, in place of "turns" before a side. Held-out paraphrase words ("veers",
+# "changes direction") stay out (tested), and so do near-synonyms of them such as "swerves".
+TURN_VERBS = ("heads", "curves", "cuts", "bears", "wheels", "pivots", "swings round")
+_TURN_TO_A_SIDE = re.compile(r"\bturns(?= (?:to the |to their )?(?:left|right)\b)")
+
+
+def reworded(caption: str, rng: np.random.Generator, turns: bool = False) -> str:
     """A caption in other words: another neutral subject (``NEUTRAL_SUBJECTS``) and, for about half the words that
-    have one, a synonym, as users word their prompts."""
+    have one, a synonym, as users word their prompts; with ``turns``, also other verbs for turning to a side
+    (``TURN_VERBS``)."""
     text = caption
     for subject in CAPTION_SUBJECTS:
         if text.lower().startswith(subject + " "):
             text = NEUTRAL_SUBJECTS[int(rng.integers(len(NEUTRAL_SUBJECTS)))] + text[len(subject):]
             break
+    if turns:
+        text = _TURN_TO_A_SIDE.sub(lambda m: _turn_verb(rng), text)
     words = []
     for word in text.split():
         core = word.rstrip(".,;!?")
@@ -541,3 +551,9 @@ def reworded(caption: str, rng: np.random.Generator) -> str:
             word = options[int(rng.integers(len(options)))] + word[len(core):]
         words.append(word)
     return " ".join(words)
+
+
+def _turn_verb(rng: np.random.Generator) -> str:
+    if rng.random() < 0.5:
+        return "turns"
+    return TURN_VERBS[int(rng.integers(len(TURN_VERBS)))]
