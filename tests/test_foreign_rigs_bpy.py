@@ -70,6 +70,8 @@ for frame in range(scene.frame_start, scene.frame_end + 1, 5):
     feet.append(min((world @ pb["mixamorig:LeftToeBase"].head)[2], (world @ pb["mixamorig:RightToeBase"].head)[2]))
 out["head_above_pelvis_m"] = float(np.min(np.array(heads) - np.array(pelvis)))
 out["lowest_toe_m"] = float(np.min(feet))
+rest = obj.matrix_world @ obj.data.bones["mixamorig:LeftToeBase"].head_local
+out["rest_toe_m"] = float(rest[2])  # the toe joint's height above the floor when the rig stands in its rest pose
 emit(out)
 """
 
@@ -89,4 +91,5 @@ def test_a_rotated_centimetre_rig_is_keyed_standing_and_its_file_settings_stay(t
     assert r["fps"] == 30  # the rig file's frame rate (no --fps)
     assert r["widgets_excluded"] and r["rig_visible"]
     assert r["head_above_pelvis_m"] > 0.3  # standing (on its side the head is level with the pelvis)
-    assert abs(r["lowest_toe_m"]) < 0.05  # on the floor, not metres below it
+    # on the floor, not metres below it: the lowest toe joint within 5 cm of its height in the rest pose
+    assert abs(r["lowest_toe_m"] - r["rest_toe_m"]) < 0.05, (r["lowest_toe_m"], r["rest_toe_m"])
