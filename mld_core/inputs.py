@@ -61,6 +61,13 @@ def number_in_range(value, what: str, lo: float, hi: float) -> float:
     return number
 
 
+def true_or_false(value, what: str) -> bool:
+    """A JSON switch: only true or false (a string such as "false" would otherwise read as on)."""
+    if not isinstance(value, bool):
+        raise InputError(f"{what} must be true or false, got {value!r}")
+    return value
+
+
 def int_in_range(value, what: str, lo: int, hi: int) -> int:
     number = whole_number(value, what)
     if not lo <= number <= hi:

@@ -420,7 +420,9 @@ def test_root_weight_scales_only_the_root_channels_and_trains(folder, tmp_path, 
 
     for make, value, words in ((lambda v: VAETrainConfig(root_weight=v), float("nan"), "root_weight must be a"),
                                (lambda v: VAETrainConfig(clip_start_share=v), 1.5, "clip_start_share must be between"),
-                               (lambda v: DenoiserTrainConfig(reworded_captions=v), -1, "reworded_captions must be")):
+                               (lambda v: DenoiserTrainConfig(reworded_captions=v), -1, "reworded_captions must be"),
+                               (lambda v: DenoiserTrainConfig(reworded_turns=v), "false", "reworded_turns must be true"),
+                               (lambda v: DenoiserTrainConfig(reworded_turns=v), 1, "reworded_turns must be true")):
         with pytest.raises(ValueError, match=words):
             make(value)
 

@@ -66,6 +66,7 @@ class DenoiserTrainConfig:
 
     def __post_init__(self):
         self.reworded_captions = inputs.int_in_range(self.reworded_captions, "reworded_captions", 0, 20)
+        self.reworded_turns = inputs.true_or_false(self.reworded_turns, "reworded_turns")
         self.train_modules = checked_module_names(self.train_modules)
         if isinstance(self.denoiser, dict):
             self.denoiser = DenoiserConfig(**self.denoiser)
