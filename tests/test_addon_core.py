@@ -233,6 +233,28 @@ def test_runner_errors_become_messages():
     runner.shutdown()
 
 
+def test_a_job_shows_as_ended_only_once_its_error_is_written(monkeypatch):
+    """The main thread's timer polls job.ended: a failed job must never read as ended with an empty message."""
+    jobs_seen = []
+
+    def message(exc):
+        jobs_seen.append(jobs_seen[0].ended)  # what the main thread would see while the message is being made
+        return "boom"
+
+    def fail(job):
+        raise ValueError("boom")
+
+    monkeypatch.setattr(jobs, "user_message", message)
+    runner = jobs.JobRunner(fail)
+    jobs_seen.append(runner.submit("bad"))
+    _drain(runner)
+    job = jobs_seen[0]
+    assert jobs_seen[1:] == [False]
+    assert job.state == jobs.FAILED and job.error == "boom" and "ValueError" in job.details
+    assert job.ended_at is not None
+    runner.shutdown()
+
+
 def test_user_messages():
     err = ModuleNotFoundError("No module named 'torch'", name="torch")
     assert "Install dependencies" in jobs.user_message(err) and "torch" in jobs.user_message(err)

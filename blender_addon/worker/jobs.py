@@ -215,17 +215,19 @@ class JobRunner:
                 # Cancel arrived after the last diffusion step: the user asked for nothing, give nothing.
                 job.result = None
                 raise JobCancelled()
-            job.state, job.stage = DONE, "done"
+            end = DONE
         except BaseException as exc:  # noqa: BLE001 - every failure must end the job, never the thread
             if _is_cancellation(exc):
-                job.state, job.stage = CANCELLED, "cancelled"
+                end = CANCELLED
             else:
-                job.state, job.stage = FAILED, "failed"
+                end = FAILED
                 job.error = user_message(exc)
                 job.details = traceback.format_exc()
                 if not isinstance(exc, Exception):
                     interrupt = exc  # KeyboardInterrupt / SystemExit: record, then let it through
         job.ended_at = time.perf_counter()
+        # The state goes last: another thread that sees the job ended must also see its error, details and end time.
+        job.state, job.stage = end, end
         if report:
             self._finished.put(job)  # before wait() returns: a waiter's next finished() call sees the job
         job._ended.set()
