@@ -7,7 +7,7 @@ import math
 from pathlib import Path
 
 from mld_core.cli import UsageError
-from mld_core.inputs import check_output_folder
+from mld_core.inputs import check_output_folder, true_or_false
 
 
 def _run_options(p) -> None:
@@ -100,6 +100,12 @@ def _overrides(args, config_class) -> dict:
     if unknown:
         raise UsageError(f"--config {args.config}: unknown setting(s) {', '.join(unknown)}; known: "
                          f"{', '.join(sorted(config_class.__dataclass_fields__))}")
+    switches = [k for k in data if isinstance(config_class.__dataclass_fields__[k].default, bool)]
+    try:
+        for key in switches:  # "false" or 1 would otherwise read as on
+            true_or_false(data[key], key)
+    except ValueError as exc:
+        raise UsageError(f"bad settings: {exc}") from None
     return data
 
 
