@@ -231,6 +231,9 @@ def _run(args, take_report) -> int:
         out = pipe(prompts, **kwargs)
     _warn_unmet(out)
     out = take_report.keep_best(out, args.variants, args.best)
+    if cond == "text" and not args.unconditional and args.sequence is None:  # a sequence's sides are per segment
+        for line in take_report.opposite_side_warnings(out):
+            print(line, file=sys.stderr)
     if out.badges is not None:
         print(take_report.badge_table(out))
     # 4. Outputs: written beside their targets, then renamed together (all or none).

@@ -10,7 +10,8 @@ from dataclasses import replace
 from typing import Sequence
 
 from mld_core.coverage import Coverage
-from mld_core.eval.quality import Badges, format_table
+from mld_core.eval import named_side
+from mld_core.eval.quality import Badges, format_table, side_badge
 
 
 class BeyondModel(ValueError):
@@ -49,6 +50,29 @@ def badge_table(out) -> str:
     return "\n".join(blocks)
 
 
+def opposite_side_note(prompt: str, side: str | None) -> str:
+    """'' unless a take's side badge is "opposite"; then what it did against the prompt ("it turns right, not left
+    as the prompt says")."""
+    ask = named_side.asked_side(prompt) if side == "opposite" else None
+    return "" if ask is None else ask.opposite_note()
+
+
+def opposite_side_warnings(out) -> list[str]:
+    """One warning line per take of ``out`` that used only the side opposite the one its prompt names (from its
+    side badge when ranked, else checked here)."""
+    lines = []
+    for row, prompt in enumerate(out.prompts):
+        if out.badges is not None:
+            side = out.badges[row].side
+        else:
+            side = side_badge(prompt, out.joints[row, : int(out.lengths[row])], out.fps)
+        note = opposite_side_note(prompt, side)
+        if note:
+            lines.append(f"warning: take {row} (seed {out.seeds[row]}): {note}; try another --seed, or --variants 4 "
+                         "--best 1 (ranking puts such takes last)")
+    return lines
+
+
 def take_record(coverage: Coverage | None, badges: Badges | None) -> dict:
     """A JSON-able record of one take's coverage and badges (batch manifest, .npz)."""
     record = {}
@@ -60,7 +84,7 @@ def take_record(coverage: Coverage | None, badges: Badges | None) -> dict:
 
 
 BADGE_PROPERTIES = {"adherence": "adherence", "similarity": "similarity", "skating": "skating",
-                    "float": "foot_float", "penetration_cm": "penetration_cm", "jitter": "jitter"}
+                    "float": "foot_float", "penetration_cm": "penetration_cm", "jitter": "jitter", "side": "side"}
 
 
 def custom_properties(coverage: Coverage | None, badges: Badges | None, prefix: str = "mld_") -> dict:
@@ -74,7 +98,7 @@ def custom_properties(coverage: Coverage | None, badges: Badges | None, prefix: 
     if badges is not None:
         for key, value in badges.as_dict().items():
             if value is not None:
-                props[BADGE_PROPERTIES[key]] = float(value)
+                props[BADGE_PROPERTIES[key]] = value if isinstance(value, str) else float(value)
     return {prefix + k: v for k, v in props.items()}
 
 

@@ -102,5 +102,6 @@ def test_batch_manifest_records_coverage_and_badges_per_take(tmp_path, tiny_with
     assert [t["coverage"]["verdict"] for t in takes] == ["known", "unknown"]
     assert takes[1]["coverage"]["nearest"][0]["caption"] == "a person walks."
     for t in takes:
-        assert set(t["badges"]) == {"adherence", "similarity", "skating", "float", "penetration_cm", "jitter"}
+        assert set(t["badges"]) == {"adherence", "similarity", "skating", "float", "penetration_cm", "jitter", "side"}
+        assert t["badges"]["side"] is None  # neither prompt names a side
         assert t["coverage_verdict"] == t["coverage"]["verdict"]  # the Action's custom properties, flattened

@@ -112,6 +112,8 @@ def finish_job(job, target: Target | None) -> tuple[str, str]:
     """Apply (or report) one ended job on the main thread; returns (level, message) for a report."""
     import bpy
 
+    from mld_core.take_report import opposite_side_note
+
     from ..scene.key_takes import apply_result
 
     scene = bpy.data.scenes.get(target.scene_name) if target else None
@@ -149,6 +151,10 @@ def finish_job(job, target: Target | None) -> tuple[str, str]:
         return "ERROR", str(exc)
     elapsed = job.elapsed
     message = f"{', '.join(report.actions)}: {report.frames} frames at {report.fps:g} fps in {elapsed:.2f} s"
+    first = job.result.takes[0] if job.result.takes else None
+    side_note = opposite_side_note(first.prompt, getattr(first.badges, "side", None)) if first is not None else ""
+    if side_note:
+        message += f"; {side_note} (try another seed, or more variants)"
     if target.live:
         message = f"Live Preview: {message}"
     record_outcome(scene, message=message, seconds=elapsed, frames=report.frames, actions=report.actions)

@@ -25,6 +25,7 @@ BADGE_LINES = (
     ("mld_foot_float", "Foot float", "{:.2f}", "no foot on the floor, not jumping (real: 0)"),
     ("mld_penetration_cm", "Penetration", "{:.1f} cm", "deepest joint below the floor (real: 0)"),
     ("mld_jitter", "Jitter", "{:.2f}", "jerk relative to motion capture (real: 1)"),
+    ("mld_side", "Side", "{}", "the side the prompt names: used (named), only the other (opposite), or neither"),
 )
 
 
@@ -121,5 +122,6 @@ def badge_lines(props) -> list[tuple[str, str]]:
     lines = []
     for key, label, fmt, why in BADGE_LINES:
         if key in props:
-            lines.append((f"{label}: {fmt.format(float(props[key]))}", why))
+            value = props[key]
+            lines.append((f"{label}: {fmt.format(value if isinstance(value, str) else float(value))}", why))
     return lines

@@ -16,9 +16,11 @@ pipeline's output have it), at ``fps`` frames per second, with plain numpy:
 - adherence (:class:`QualityScorer`): the bundled evaluator's cosine similarity between the prompt and the motion,
   reported as a percentile of its distribution on real test pairs (50 = as well matched as a typical real clip and
   its own caption).
+- ``side`` (:func:`side_badge`): for a prompt that names one side for a turn, a drift, a wave or a raised hand,
+  whether the take used it ("named"), only the other side ("opposite"), or neither (``mld_core.eval.named_side``).
 
-:func:`rank_score` combines them (documented in docs/quality.md); :func:`best_first` orders variants by it,
-deterministically (ties: the lower seed first). ``python scripts/quality_table.py`` measures every badge on the
+:func:`rank_score` combines the numbers (documented in docs/quality.md); :func:`best_first` orders variants by it,
+deterministically (ties: the lower seed first), with takes that used the opposite side last. ``python scripts/quality_table.py`` measures every badge on the
 real test clips and on generated ones, and writes the reference file.
 """
 
@@ -30,6 +32,8 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+
+from mld_core.eval import named_side, physical
 
 L_TOE, R_TOE, PELVIS = 10, 11, 0
 G = 9.81
@@ -128,9 +132,10 @@ class Badges:
     float: float
     penetration_cm: float
     jitter: float
+    side: str | None = None  # "named" / "opposite" / "neither" (mld_core.eval.named_side); None: no side asked
 
     def as_dict(self) -> dict:
-        return {k: (None if v is None else round(float(v), 4)) for k, v in asdict(self).items()}
+        return {k: (v if v is None or isinstance(v, str) else round(float(v), 4)) for k, v in asdict(self).items()}
 
 
 def physical_badges(joints, fps: float = 20.0, reference_jerk: float | None = None) -> dict:
@@ -152,9 +157,10 @@ def rank_score(b: Badges) -> float:
 
 
 def best_first(badges: Sequence[Badges], seeds: Sequence[int]) -> list[int]:
-    """Indices of ``badges`` from the best rank_score down; equal scores keep the lower seed first."""
-    keys = [(-round(rank_score(b), 9), int(s), i) for i, (b, s) in enumerate(zip(badges, seeds))]
-    return [i for _, _, i in sorted(keys)]
+    """Indices of ``badges`` from the best rank_score down; equal scores keep the lower seed first. Takes that
+    used the side opposite the one the prompt names (side "opposite") come after all others, whatever their score."""
+    keys = [(b.side == "opposite", -round(rank_score(b), 9), int(s), i) for i, (b, s) in enumerate(zip(badges, seeds))]
+    return [key[-1] for key in sorted(keys)]
 
 
 def percentile(value: float, quantiles: Sequence[float]) -> float:
@@ -202,6 +208,7 @@ class QualityScorer:
         """Badges per take. ``features`` (T_i, 263) are computed from the joints when not given."""
         joints = [np.asarray(j) for j in joints]
         physical = [physical_badges(j, fps, self.reference.get("jerk_mean")) for j in joints]
+        sides = [side_badge(p, j, fps) for p, j in zip(prompts, joints)] if prompts else [None] * len(joints)
         sims = [None] * len(joints)
         pct = [None] * len(joints)
         if self.evaluator is not None and prompts and all(p for p in prompts):
@@ -212,7 +219,13 @@ class QualityScorer:
             sims = [float(s) for s in self.similarity(prompts, features)]
             quantiles = self.reference.get("similarity_percentiles")
             pct = [percentile(s, quantiles) if quantiles else None for s in sims]
-        return [Badges(a, s, **p) for a, s, p in zip(pct, sims, physical)]
+        return [Badges(a, s, **p, side=side) for a, s, p, side in zip(pct, sims, physical, sides)]
+
+
+def side_badge(prompt: str | None, joints: np.ndarray, fps: float = 20.0) -> str | None:
+    """"named" / "opposite" / "neither" for a prompt that names one side (mld_core.eval.named_side), else None."""
+    ask = named_side.asked_side(prompt) if prompt else None
+    return None if ask is None else named_side.side_used(ask, physical.classify(joints, fps))
 
 
 def rank_output(out, scorer: QualityScorer, num_variants: int, prompts: Sequence[str] | None = None):
@@ -235,9 +248,10 @@ def rank_output(out, scorer: QualityScorer, num_variants: int, prompts: Sequence
 
 def format_table(seeds: Sequence[int], badges: Sequence[Badges]) -> str:
     """The CLI's table: one row per take, in the given order."""
-    lines = [f"{'seed':>6s} {'adherence':>9s} {'skating':>7s} {'float':>5s} {'penetr.':>7s} {'jitter':>6s} {'rank':>6s}"]
+    lines = [f"{'seed':>6s} {'adherence':>9s} {'skating':>7s} {'float':>5s} {'penetr.':>7s} {'jitter':>6s} {'rank':>6s}"
+             f" {'side':>8s}"]
     for seed, b in zip(seeds, badges):
         adh = "-" if b.adherence is None else f"{b.adherence:.0f}"
         lines.append(f"{seed:6d} {adh:>9s} {b.skating:7.2f} {b.float:5.2f} {b.penetration_cm:5.1f}cm "
-                     f"{b.jitter:6.2f} {rank_score(b):6.2f}")
+                     f"{b.jitter:6.2f} {rank_score(b):6.2f} {b.side or '-':>8s}")
     return "\n".join(lines)
