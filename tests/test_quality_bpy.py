@@ -49,6 +49,18 @@ out["check_s"] = quality_ui.watcher().seconds
 Layout.calls.clear()
 quality_ui.MLD_PT_known.draw(Host(), ctx)
 out["known"] = [c[1] for c in Layout.calls if c[0] == "label"]
+
+# A take on the side opposite the prompt's: a judge that always sees the other side (the tiny model's takes are noise)
+# shows how the badge and the words reach the user.
+from mld_core.eval import named_side
+named_side.side_used = lambda ask, checks: "opposite"
+s.prompt, s.variants = "a person walks and turns left", 1
+out["opposite_generate"] = sorted(bpy.ops.mld.generate())
+out["opposite_message"] = s.last_message
+out["opposite_side"] = bpy.data.actions[s.last_actions.split(", ")[0]].get("mld_side")
+Layout.calls.clear()
+panels.MLD_PT_generate.draw(Host(), ctx)
+out["opposite_labels"] = [c[1] for c in Layout.calls if c[0] == "label"]
 emit(out)
 """
 
@@ -85,6 +97,10 @@ def test_actions_carry_coverage_and_badges_and_the_panel_shows_them(tmp_path, ti
     assert [t for t in walk if t.startswith("Foot skating: ")] and [t for t in walk if t.startswith("Adherence: ")]
     assert "planted toes sliding (real walks: 0.2)" in walk
     assert r["known"] == ["run: runs forward", "walk: walks forward"]
+    assert r["opposite_generate"] == ["FINISHED"] and r["opposite_side"] == "opposite"
+    assert r["opposite_message"].endswith("; it turns right, not left as the prompt says (try another seed, or more "
+                                          "variants)")
+    assert "Side: opposite" in r["opposite_labels"]
     assert len(r["check_s"]) == 2
 
 
