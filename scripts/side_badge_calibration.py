@@ -79,7 +79,9 @@ def main(argv=None) -> int:
     for content, counts in real.items():
         print(f"  {content:22s} " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())))
     total = sum(sum(c.values()) for c in real.values())
-    print(f"  opposite: {len(opposite)} of {total} caption-clip pairs" + "".join(f"\n    {c}: {t}" for c, t in opposite))
+    print(f"  opposite: {len(opposite)} of {total} caption-clip pairs")
+    for cid, caption in opposite:
+        print(f"    {cid}: {caption}")
     if args.json is not None:
         args.json.write_text(json.dumps({"read": read, "real": real, "opposite": opposite}, indent=1))
         print(f"wrote {args.json}")

@@ -119,13 +119,15 @@ def test_calibration_script_reads_captions_and_checks_them_on_their_captures(tmp
     import importlib.util
     import json
 
-    spec = importlib.util.spec_from_file_location("side_badge_calibration", REPO / "scripts" / "side_badge_calibration.py")
+    path = REPO / "scripts" / "side_badge_calibration.py"
+    spec = importlib.util.spec_from_file_location("side_badge_calibration", path)
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
     data = tmp_path / "bandai"
     (data / "texts").mkdir(parents=True)
     (data / "new_joints").mkdir()
-    clips = {"turn": ("walk-turn-left", turn_left_clip), "mislabelled": ("walk-turn-left", mirror_joints(turn_left_clip)),
+    clips = {"turn": ("walk-turn-left", turn_left_clip),
+             "mislabelled": ("walk-turn-left", mirror_joints(turn_left_clip)),  # a right turn captioned as a left one
              "walk": ("walk", turn_left_clip)}
     for cid, (content, joints) in clips.items():
         np.save(data / "new_joints" / f"{cid}.npy", joints)

@@ -13,7 +13,8 @@ Reading the prompt, with plain English word lists:
   bye, goodbye, farewell), else a raised hand;
 - followed by leg(s) / foot / feet: a leg, which no check reads (None);
 - otherwise a direction: a turn when the prompt has a turning word (turn, veer, changes direction, ...) not
-  after "without" / "not" / "no" / "never", else a drift when it has a travelling word (walk, stroll, drift, diagonally, ...), else None.
+  after "without" / "not" / "no" / "never", else a drift when it has a travelling word (walk, stroll, drift,
+  diagonally, ...), else None.
 
 Only numpy (through the physical checks): the pipeline's ranking and the evaluation scripts use it.
 """
@@ -25,11 +26,9 @@ from dataclasses import dataclass
 
 from mld_core.eval import physical
 
-__all__ = ["SideAsk", "asked_side", "side_used", "SIDE_VERDICTS"]
+__all__ = ["SideAsk", "asked_side", "side_used"]
 
-SIDE_VERDICTS = ("named", "opposite", "neither")
-
-_SIDES = {"left": "left", "right": "right"}
+_SIDES = {"left", "right"}
 _HAND_WORDS = {"hand", "hands", "arm", "arms"}
 _LEG_WORDS = {"leg", "legs", "foot", "feet", "knee", "toe", "toes"}
 _WAVE_WORDS = {"wave", "waves", "waving", "waved", "bye", "byebye", "goodbye", "farewell"}
@@ -45,8 +44,7 @@ _NEGATIONS = {"without", "not", "no", "never"}  # "diagonally to the left withou
 
 # The content label whose side check reads each kind of ask (physical.detected_side).
 _LABEL = {"turn": "walk-turn-{}", "drift": "walk-{}", "wave": "wave-{}-hand", "raise": "raise-up-{}-hand"}
-
-
+# What a take of each kind did, for the note on a take that used the other side.
 _DOING = {"turn": "turns {}", "drift": "drifts {}", "wave": "waves the {} hand", "raise": "raises the {} hand"}
 
 

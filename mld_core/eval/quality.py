@@ -20,8 +20,9 @@ pipeline's output have it), at ``fps`` frames per second, with plain numpy:
   whether the take used it ("named"), only the other side ("opposite"), or neither (``mld_core.eval.named_side``).
 
 :func:`rank_score` combines the numbers (documented in docs/quality.md); :func:`best_first` orders variants by it,
-deterministically (ties: the lower seed first), with takes that used the opposite side last. ``python scripts/quality_table.py`` measures every badge on the
-real test clips and on generated ones, and writes the reference file.
+deterministically (ties: the lower seed first), with takes that used the opposite side last.
+``python scripts/quality_table.py`` measures every badge on the real test clips and on generated ones, and writes the
+reference file.
 """
 
 from __future__ import annotations
@@ -207,7 +208,7 @@ class QualityScorer:
               fps: float = 20.0) -> list[Badges]:
         """Badges per take. ``features`` (T_i, 263) are computed from the joints when not given."""
         joints = [np.asarray(j) for j in joints]
-        physical = [physical_badges(j, fps, self.reference.get("jerk_mean")) for j in joints]
+        measured = [physical_badges(j, fps, self.reference.get("jerk_mean")) for j in joints]
         sides = [side_badge(p, j, fps) for p, j in zip(prompts, joints)] if prompts else [None] * len(joints)
         sims = [None] * len(joints)
         pct = [None] * len(joints)
@@ -219,7 +220,7 @@ class QualityScorer:
             sims = [float(s) for s in self.similarity(prompts, features)]
             quantiles = self.reference.get("similarity_percentiles")
             pct = [percentile(s, quantiles) if quantiles else None for s in sims]
-        return [Badges(a, s, **p, side=side) for a, s, p, side in zip(pct, sims, physical, sides)]
+        return [Badges(a, s, **p, side=side) for a, s, p, side in zip(pct, sims, measured, sides)]
 
 
 def side_badge(prompt: str | None, joints: np.ndarray, fps: float = 20.0) -> str | None:
