@@ -42,6 +42,7 @@ def test_the_side_a_prompt_names_and_what_for(prompt, label):
     "a person turns left and waves the right hand",  # two sides: which goes with what is not guessed
     "someone kicks high with the right leg",  # a leg: no check reads which one kicked
     "a person stands on the left",  # a side, but no turn, travel or hand
+    "someone tilts the head to the left",  # "head" is the noun here, not "heads left"
     "",
 ])
 def test_prompts_without_one_checkable_side_get_no_badge(prompt):

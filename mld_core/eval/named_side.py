@@ -36,7 +36,7 @@ _TURN_WORDS = {"turn", "turns", "turning", "turned", "veer", "veers", "veering",
                "rotates", "rotating", "pivot", "pivots", "pivoting", "swerve", "swerves", "swerving"}
 _TRAVEL_WORDS = {"walk", "walks", "walking", "walked", "stroll", "strolls", "strolling", "drift", "drifts", "drifting",
                  "diagonally", "diagonal", "step", "steps", "stepping", "sidestep", "sidesteps", "move", "moves",
-                 "moving", "go", "goes", "going", "head", "heads", "heading", "march", "marches", "jog", "jogs",
+                 "moving", "go", "goes", "going", "heads", "heading", "march", "marches", "jog", "jogs",
                  "run", "runs", "running", "shuffle", "shuffles", "lumber", "lumbers", "stride", "strides",
                  "forward", "forwards", "ahead", "sideways"}
 
