@@ -62,7 +62,7 @@ def _addon_package():
 _addon_package()  # puts mld_core (the vendored copy or the checkout) on sys.path
 from mld_core import inputs  # noqa: E402
 from mld_core.fileio import OutputSet  # noqa: E402
-from mld_core.take_report import opposite_side_note  # noqa: E402
+from mld_core.take_report import opposite_side_note, redrawn_note  # noqa: E402
 
 
 def script_argv(argv=None) -> list[str]:
@@ -466,6 +466,8 @@ def key_every_line(args, addon, inp: _Inputs, pipe, scene, obj) -> tuple[list, l
         side_note = opposite_side_note(take.prompt, getattr(take.badges, "side", None))
         if side_note:
             print(f"warning: line {line.line}: {side_note} (try another seed, or more variants)", file=sys.stderr)
+        elif take.draw:
+            print(f"note: line {line.line}: {redrawn_note(take.prompt, take.draw)}", file=sys.stderr)
         for kind, metres, met in take.residuals or []:
             if not met:
                 print(f"warning: job {line.line}: the {kind} constraint is off by {metres * 100:.1f} cm (best effort)",

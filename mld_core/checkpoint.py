@@ -15,6 +15,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from mld_core.fileio import atomic_write
+from mld_core.inputs import MAX_SIDE_REDRAWS
 from mld_core.models.denoiser import DenoiserConfig
 from mld_core.models.vae import VAEConfig
 from mld_core.motion.repair import RepairConfig
@@ -82,6 +83,7 @@ class ModelConfig:
     skeleton: dict = field(default_factory=dict)
     repair: RepairConfig = field(default_factory=RepairConfig)  # mld_core.motion.repair, on free 263-d takes
     stepping: SteppingConfig = field(default_factory=SteppingConfig)  # mld_core.stepping: free takes' latents step
+    side_redraws: int = 2  # a free take that misses the side its prompt names is drawn again, at most this often
     draft: DraftConfig | None = None  # a Draft denoiser in draft.safetensors (pipe(..., draft=True))
     provenance: dict = field(default_factory=dict)
 
@@ -197,6 +199,9 @@ def check_config(config: ModelConfig) -> None:
         raise ValueError("std must be positive")
     _check_repair(config.repair)
     _check_stepping(config.stepping)
+    redraws = config.side_redraws
+    if isinstance(redraws, bool) or not isinstance(redraws, int) or not 0 <= redraws <= MAX_SIDE_REDRAWS:
+        raise ValueError(f"side_redraws must be a whole number in 0..{MAX_SIDE_REDRAWS}, got {redraws!r}")
     if config.draft is not None:
         _check_draft(config.draft, config.scheduler)
 

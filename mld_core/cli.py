@@ -14,7 +14,7 @@ import importlib
 import sys
 import warnings
 
-from mld_core.inputs import InputError, check_seed, check_threads
+from mld_core.inputs import MAX_SIDE_REDRAWS, InputError, check_seed, check_threads, int_in_range
 
 # Shared by generate, evaluate and bench (names here so that building the parser needs no torch).
 PRECISION_CHOICES = ("fp32", "bf16")
@@ -42,6 +42,8 @@ def check_common_options(args) -> None:
         check_threads(args.threads, "--threads")
     if isinstance(getattr(args, "seed", None), int):
         check_seed(args.seed, what="--seed")
+    if getattr(args, "side_redraws", None) is not None:
+        int_in_range(args.side_redraws, "--side-redraws", 0, MAX_SIDE_REDRAWS)
 
 
 def build_parser() -> argparse.ArgumentParser:

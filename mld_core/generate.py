@@ -28,7 +28,8 @@ def write_npz(path: Path, out, records: list | None = None, outputs: OutputSet |
         with open(tmp, "wb") as f:
             np.savez(f, features=out.features.astype(np.float32), joints=out.joints.astype(np.float32),
                      lengths=np.asarray(out.lengths, np.int64), fps=np.int64(out.fps), prompts=np.array(out.prompts),
-                     seeds=np.asarray(out.seeds, np.int64), model_id=np.array(out.model_id), **extra)
+                     seeds=np.asarray(out.seeds, np.int64), model_id=np.array(out.model_id),
+                     draws=np.asarray(out.draws or [0] * len(out.lengths), np.int64), **extra)
 
     if outputs is not None:
         outputs.stage(path, save)
@@ -218,7 +219,7 @@ def _run(args, take_report) -> int:
     seeds = [args.seed + i * args.variants for i in range(len(lines))]
     kwargs = dict(seconds=seconds, num_inference_steps=args.steps, guidance_scale=args.guidance, seed=seeds,
                   num_variants=args.variants, rank=args.best is not None, constraints=constraints or None,
-                  draft=args.draft)
+                  draft=args.draft, side_redraws=args.side_redraws)
     if args.sequence is not None:  # one motion, segment k continuing segment k-1 (seed + k)
         out = pipe.sequence(list(zip(prompts, seconds)), seed=args.seed, overlap_s=SEQUENCE_OVERLAP_S,
                             num_inference_steps=args.steps, guidance_scale=args.guidance, draft=args.draft)
@@ -232,7 +233,7 @@ def _run(args, take_report) -> int:
     _warn_unmet(out)
     out = take_report.keep_best(out, args.variants, args.best)
     if cond == "text" and not args.unconditional and args.sequence is None:  # a sequence's sides are per segment
-        for line in take_report.opposite_side_warnings(out):
+        for line in take_report.redrawn_notes(out) + take_report.opposite_side_warnings(out):
             print(line, file=sys.stderr)
     if out.badges is not None:
         print(take_report.badge_table(out))
@@ -262,6 +263,9 @@ def register(groups) -> None:
     p.add_argument("--guidance", type=float, default=None, help="classifier-free guidance scale (default: the model's)")
     p.add_argument("--draft", action="store_true",
                    help="Draft mode: the model's distilled denoiser, about 10x faster (docs/draft.md)")
+    p.add_argument("--side-redraws", type=int, default=None, metavar="N",
+                   help="a take that misses the side its prompt names (turns right for 'turns left', waves the other "
+                        "hand) is drawn again from its seed, at most N times (default: the model's, 2; 0: never)")
     p.add_argument("--variants", type=int, default=1, help="motions per prompt (seeds seed, seed+1, ...)")
     p.add_argument("--best", type=int, default=None, metavar="K",
                    help="score every variant (adherence, skating, float, penetration, jitter: docs/quality.md), "

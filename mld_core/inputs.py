@@ -24,6 +24,7 @@ MAX_GUIDANCE = 30.0
 SEED_MAX = 2**31 - 1
 MAX_THREADS = 1024
 MAX_FPS = 1000.0
+MAX_SIDE_REDRAWS = 8  # model config side_redraws: draws beyond a take's first when it misses its prompt's side
 
 
 class InputError(ValueError):

@@ -68,6 +68,18 @@ class MLDOutput:
     timings: dict = field(default_factory=dict)
     badges: list | None = None  # per row a mld_core.eval.quality.Badges when generated with rank=True
     residuals: list | None = None  # per row [(kind, metres, met)] when generated with constraints
+    draws: list | None = None  # per row, which z_T of its seed the take is (0: the first; side redraws: 1, 2, ...)
+
+    def select(self, rows: Sequence[int]) -> "MLDOutput":
+        """These rows, in this order (every per-row field follows them)."""
+        rows = list(rows)
+
+        def pick(values):
+            return None if values is None else [values[i] for i in rows]
+
+        return replace(self, features=self.features[rows], joints=self.joints[rows], lengths=self.lengths[rows],
+                       prompts=pick(self.prompts), seeds=pick(self.seeds), badges=pick(self.badges),
+                       residuals=pick(self.residuals), draws=pick(self.draws))
 
 
 def _as_list(value, n: int, name: str) -> list:
@@ -466,7 +478,7 @@ class MLDPipeline:
                  guidance_scale: float | None = None, seed: int | Sequence[int] = 0, num_variants: int = 1,
                  callback: Callable[[int, int], bool | None] | None = None, unconditional: bool = False,
                  rank: bool = False, constraints=None, repair: bool = True, draft: bool = False,
-                 step: bool | None = None) -> MLDOutput:
+                 step: bool | None = None, draw: int = 0, side_redraws: int | None = None) -> MLDOutput:
         """Generate ``num_variants`` motions per prompt; row i*num_variants + v uses seed ``seed + v``, or
         ``seed[i] + v`` when ``seed`` is a sequence (one per prompt). Any row equals the single run with its seed. (A
         Draft in bf16: to within bf16 rounding, up to about 2 cm.) ``unconditional`` samples with the null
@@ -478,7 +490,10 @@ class MLDPipeline:
         ``repair``) refines each Final take's sampled latent until its feet step (config ``stepping``); the
         constraints are then met with the feet's slide in their cost. ``draft`` samples with
         the model's Draft denoiser (config ``draft``: a few consistency steps, the last of them guided steps of
-        the model's own denoiser, and its own text encoder when it has one; about 10x faster)."""
+        the model's own denoiser, and its own text encoder when it has one; about 10x faster). ``draw`` k starts
+        each row from the (k+1)-th z_T of its seed. ``side_redraws`` (default: config ``side_redraws``): a free take
+        whose prompt names a side (a turn, a drift, a wave, a raised hand: mld_core.eval.named_side) that it did
+        not use is drawn again, at most this often (``out.draws`` says which draw each row is)."""
         if self.denoiser is None:
             raise CheckpointError("this model folder has only a VAE; sample with sample_prior() or train a denoiser")
         if draft and self.draft_denoiser is None:
@@ -518,6 +533,9 @@ class MLDPipeline:
         row_prompts = [prompts[i] for i, _ in rows]
         row_actions = [actions[i] for i, _ in rows] if actions is not None else None
         base = [inputs.check_seed(x, num_variants, "seed") for x in _as_list(seed, n_prompts, "seed")]
+        draw = inputs.int_in_range(draw, "draw", 0, 1000)
+        redraws = self.config.side_redraws if side_redraws is None else \
+            inputs.int_in_range(side_redraws, "side_redraws", 0, inputs.MAX_SIDE_REDRAWS)
         seeds = [base[i] + v for i, v in rows]
         lengths = torch.tensor([frames[i] for i, _ in rows], device=self.device)
         B = len(rows)
@@ -531,9 +549,13 @@ class MLDPipeline:
             t_cond, t_null = self._condition(row_prompts, row_actions, cond_kind, self.draft_teacher, draft)
         timings["condition_s"] = time.perf_counter() - t0
 
-        # 3. z_T ~ N(0, I), drawn per row from its own generator (seeded per row) so a batch equals single runs.
+        # 3. z_T ~ N(0, I), drawn per row from its own generator (seeded per row) so a batch equals single runs;
+        #    draw k skips the generator's first k draws.
         n, d = self.config.vae.latent_tokens, self.config.vae.latent_dim
         generators = [torch.Generator().manual_seed(sd) for sd in seeds]
+        for g in generators:
+            for _ in range(draw):
+                torch.randn(n, d, generator=g)
         z = torch.stack([torch.randn(n, d, generator=g) for g in generators]).to(self.device)  # (B, n, d)
 
         # 4. Denoising. Final: DDIM, eps = eps_null + s * (eps_c - eps_null). Draft: consistency steps of the
@@ -602,9 +624,15 @@ class MLDPipeline:
         # 6. Joints from the features.
         joints = self.joints_from_features(features, lengths.tolist())
         out = MLDOutput(features, joints, lengths.cpu().numpy(), row_prompts, seeds, self.config.fps,
-                        self.model_id, timings)
+                        self.model_id, timings, draws=[draw] * B)
         if constraints:
             out.residuals = [constraints.residuals(joints[i, :n]) for i, n in enumerate(out.lengths)]
+        # 6b. Side redraws: a free take that misses the side its prompt names is drawn again (redraw_off_side).
+        if redraws and cond_kind == "text" and not constraints:
+            t0 = time.perf_counter()
+            out = self.redraw_off_side(out, [secs[i] for i, _ in rows], redraws, num_inference_steps=steps,
+                                       guidance_scale=s, callback=callback, repair=repair, draft=draft, step=step)
+            timings["side_redraws_s"] = time.perf_counter() - t0
         if rank:  # 7. Badges per row; each prompt's variants best first.
             from mld_core.eval.quality import rank_output
 
@@ -612,6 +640,35 @@ class MLDPipeline:
             out = rank_output(out, self.quality_scorer(), num_variants, None if cond_kind == "text" else [])
             timings["rank_s"] = time.perf_counter() - t0
         timings["total_s"] = time.perf_counter() - t_start
+        return out
+
+    def redraw_off_side(self, out: MLDOutput, seconds: list, redraws: int, **kwargs) -> MLDOutput:
+        """``out`` with each row whose prompt names a side that the take did not use (side badge "opposite" or
+        "neither") replaced by the first of its seed's next ``redraws`` draws that uses it, else by the first that
+        is at least not on the opposite side; ``out.draws`` records the draw kept. ``kwargs``: the first draw's
+        sampling arguments (steps, guidance, repair, ...), so that each draw is made as it was."""
+        from mld_core.eval.quality import side_badge
+
+        def side(o: MLDOutput, r: int) -> str | None:
+            return side_badge(o.prompts[r], o.joints[r, : int(o.lengths[r])], o.fps)
+
+        verdicts = [side(out, r) for r in range(len(out.lengths))]
+        first = out.draws[0] if out.draws else 0
+        for k in range(first + 1, first + redraws + 1):
+            rows = [r for r, v in enumerate(verdicts) if v in ("opposite", "neither")]
+            if not rows:
+                break
+            again = self([out.prompts[r] for r in rows], [seconds[r] for r in rows],
+                         seed=[out.seeds[r] for r in rows], draw=k, side_redraws=0, **kwargs)
+            for j, r in enumerate(rows):
+                v = side(again, j)
+                if v == "named" or (v == "neither" and verdicts[r] == "opposite"):
+                    n = again.features.shape[1]  # (B', T', F): T' <= this output's T
+                    out.features[r] = 0.0
+                    out.features[r, :n] = again.features[j]
+                    out.joints[r, :n] = again.joints[j]
+                    out.joints[r, n:] = again.joints[j, int(again.lengths[j]) - 1]  # (frames past the length repeat)
+                    out.draws[r], verdicts[r] = k, v
         return out
 
     def sequence(self, segments: Sequence[tuple[str, float]], *, seed: int = 0, overlap_s: float = 0.5,
@@ -630,6 +687,7 @@ class MLDPipeline:
             raise InputError("a sequence needs at least one (prompt, seconds) segment")
         overlap = int(round(overlap_s * self.config.fps))
         repair = kwargs.pop("repair", True)  # per segment, once they are joined (below)
+        kwargs["side_redraws"] = 0  # joined segments are not drawn again (a side is asked of a segment, not the take)
         step = kwargs.pop("step", repair)  # each segment's sample, before it is joined
         first = self(segments[0][0], segments[0][1], seed=seed, repair=False, step=step, **kwargs)
         features = first.features[0, : int(first.lengths[0])]  # (T, F)

@@ -6,7 +6,6 @@ that every place a take appears says the same thing about it.
 
 from __future__ import annotations
 
-from dataclasses import replace
 from typing import Sequence
 
 from mld_core.coverage import Coverage
@@ -35,10 +34,7 @@ def keep_best(out, num_variants: int, best: int | None):
     """The first ``best`` rows of each prompt's group (rows already best first); ``out`` itself when None."""
     if best is None or best >= num_variants:
         return out
-    keep = [i for i in range(len(out.lengths)) if i % num_variants < best]
-    return replace(out, features=out.features[keep], joints=out.joints[keep], lengths=out.lengths[keep],
-                   prompts=[out.prompts[i] for i in keep], seeds=[out.seeds[i] for i in keep],
-                   badges=[out.badges[i] for i in keep] if out.badges is not None else None)
+    return out.select([i for i in range(len(out.lengths)) if i % num_variants < best])
 
 
 def badge_table(out) -> str:
@@ -70,6 +66,23 @@ def opposite_side_warnings(out) -> list[str]:
         if note:
             lines.append(f"warning: take {row} (seed {out.seeds[row]}): {note}; try another --seed, or --variants 4 "
                          "--best 1 (ranking puts such takes last)")
+    return lines
+
+
+def redrawn_note(prompt: str, draw: int) -> str:
+    """'' for a seed's first draw; else why the take is a later one ("draw 1 of its seed: the first did not turn
+    left as the prompt says")."""
+    ask = named_side.asked_side(prompt) if draw else None
+    return "" if ask is None else ask.redrawn_note(draw)
+
+
+def redrawn_notes(out) -> list[str]:
+    """One line per take of ``out`` that is a later draw of its seed (the pipeline's side redraws), saying why."""
+    lines = []
+    for row, prompt in enumerate(out.prompts):
+        note = redrawn_note(prompt, out.draws[row] if out.draws else 0)
+        if note:
+            lines.append(f"note: take {row} (seed {out.seeds[row]}) is {note}")
     return lines
 
 

@@ -313,9 +313,12 @@ def build_requests(clips: dict, modes: list[str], lengths: list, seeds: int, max
 
 
 def generate(pipe, reqs: list[dict], batch: int, steps: int | None, guidance: float | None, fps: float,
-             tallies: dict, repair: bool = True, per_prompt: dict | None = None) -> float:
+             tallies: dict, repair: bool = True, per_prompt: dict | None = None,
+             side_redraws: int | None = None, redraws: dict | None = None) -> float:
     """Run the requests through the pipeline in batches (grouped by seed/variants) and tally the results, per
-    (source, length) and content; paraphrases also per (length, content, prompt) into ``per_prompt``."""
+    (source, length) and content; paraphrases also per (length, content, prompt) into ``per_prompt``; into
+    ``redraws``: under "kept", per "source@length" and content, how many takes are a later draw of their seed
+    (the pipeline's side redraws); under "seconds", the time spent drawing again."""
     from tqdm import tqdm
 
     cond = pipe.denoiser.config.cond if pipe.denoiser is not None else "none"
@@ -330,7 +333,8 @@ def generate(pipe, reqs: list[dict], batch: int, steps: int | None, guidance: fl
             for a in range(0, len(rs), per):
                 chunk = rs[a:a + per]
                 kwargs = dict(seconds=[r["seconds"] for r in chunk], seed=seed, num_variants=variants,
-                              num_inference_steps=steps, guidance_scale=guidance, repair=repair)
+                              num_inference_steps=steps, guidance_scale=guidance, repair=repair,
+                              side_redraws=side_redraws)
                 if cond == "action":
                     out = pipe([r["content"] for r in chunk], actions=[r["content"] for r in chunk], **kwargs)
                 else:
@@ -342,6 +346,15 @@ def generate(pipe, reqs: list[dict], batch: int, steps: int | None, guidance: fl
                     tallies[(r["source"], r["length"])][r["content"]].add(joints, r["content"], fps, key)
                     if per_prompt is not None and r["source"] == "paraphrase":
                         per_prompt[(r["length"], r["content"], r["prompt"])].add(joints, r["content"], fps)
+                    if redraws is not None:
+                        length = "clip" if r["length"] == "clip" else f"{r['length']:g}s"
+                        where = f"{r['source']}@{length}"
+                        kept = redraws.setdefault("kept", {}).setdefault(where, {}).setdefault(
+                            r["content"], {"takes": 0, "redrawn": 0})
+                        kept["takes"] += 1
+                        kept["redrawn"] += int(bool(out.draws and out.draws[row]))
+                if redraws is not None:
+                    redraws["seconds"] = redraws.get("seconds", 0.0) + out.timings.get("side_redraws_s", 0.0)
                 bar.update(len(out.lengths))
     return time.perf_counter() - t0
 
@@ -488,6 +501,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="leave out the captions of test clips whose own motion fails the content's checks")
     ap.add_argument("--no-repair", action="store_true", help="generate without the model's repairs (planted feet, "
                     "one skeleton): the ablation")
+    ap.add_argument("--side-redraws", type=int, default=None, metavar="N",
+                    help="draws of a take beyond its first when it misses the side its prompt names (default: the "
+                         "model's config side_redraws; 0: every take is its seed's first draw, the model alone)")
     args = ap.parse_args(argv)
 
     contents = [c.strip() for c in args.contents.split(",") if c.strip()]
@@ -564,7 +580,7 @@ def main(argv: list[str] | None = None) -> int:
             reqs = build_requests(clips, modes, lengths, args.seeds, args.max_clips, pipe.min_seconds,
                                   pipe.max_seconds, frozenset(skip), args.first_seed)
             seconds += generate(pipe, reqs, args.batch, args.steps, args.guidance, fps, tallies, not args.no_repair,
-                                per_prompt)
+                                per_prompt, args.side_redraws, report.setdefault("redraws", {}))
         n = sum(t.n for per in tallies.values() for t in per.values())
         print(f"generated and scored {n} motions in {seconds:.1f} s ({seconds / max(n, 1):.3f} s each)",
               file=sys.stderr)
@@ -582,6 +598,7 @@ def main(argv: list[str] | None = None) -> int:
         report.update(model=str(args.model or "default"), model_id=pipe.model_id, seeds=args.seeds,
                       first_seed=args.first_seed,
                       repair=not args.no_repair,
+                      side_redraws=pipe.config.side_redraws if args.side_redraws is None else args.side_redraws,
                       steps=args.steps, guidance=args.guidance, max_clips=args.max_clips, generation_s=seconds)
 
     print_table(report, contents)

@@ -137,3 +137,19 @@ def test_generate_with_the_bundled_default_model(tmp_path):
     j = a["joints"][0]
     height = j[:, 15, 1] - np.minimum(j[:, 10, 1], j[:, 11, 1])
     assert 1.2 < float(np.median(height)) < 2.0
+
+
+@pytest.mark.skipif(not (DEFAULT_MODEL_DIR / "config.json").is_file(), reason="the bundled default model is not built")
+def test_a_take_that_turns_the_other_way_is_drawn_again_and_says_so(tmp_path, capsys):
+    """Seed 41 of this caption turns left on the default model (v3.6); its second draw turns right, as asked."""
+    prompt = "the person walks forward and turns to the right, with youthful energy."
+    argv = ["generate", prompt, "--seconds", "6.6", "--seed", "41", "--threads", "2"]
+    assert main(argv + ["--side-redraws", "0", "--out", str(tmp_path / "first.npz")]) == 0
+    assert "warning: take 0 (seed 41): it turns left, not right as the prompt says" in capsys.readouterr().err
+    assert main(argv + ["--out", str(tmp_path / "redrawn.npz")]) == 0
+    err = capsys.readouterr().err
+    assert "note: take 0 (seed 41) is draw 1 of its seed: the first did not turn right as the prompt says" in err
+    assert "warning" not in err
+    first, redrawn = np.load(tmp_path / "first.npz"), np.load(tmp_path / "redrawn.npz")
+    assert first["draws"].tolist() == [0] and redrawn["draws"].tolist() == [1] and redrawn["seeds"].tolist() == [41]
+    assert not np.allclose(first["joints"], redrawn["joints"])

@@ -418,6 +418,10 @@ def test_side_accuracy_script_end_to_end(bandai_clips, tmp_path, request, capsys
     # a key per take: prompt | seconds | seed | variant; a paraphrase's 2 seeds are variants 0 and 1 of seed 0
     keys = rep["generated"]["paraphrase@2s"]["contents"]["walk-turn-left"]["takes"]["keys"]
     assert len(set(keys)) == 8 and all(k.endswith(("|0|0", "|0|1")) and "|2.000|" in k for k in keys)
+    # side redraws (the model's default, 2): which takes are a later draw of their seed, and the time they took
+    assert rep["side_redraws"] == 2 and rep["redraws"]["seconds"] >= 0.0
+    kept = rep["redraws"]["kept"]["paraphrase@clip"]["walk-turn-left"]
+    assert kept["takes"] == 8 and 0 <= kept["redrawn"] <= 8
     recon = rep["generated"]["vae-recon@clip"]["contents"]["walk-turn-left"]["takes"]["keys"]
     assert recon == ["dataset-2_walk-turn-left_normal_027|clip"]
     with pytest.raises(SystemExit):

@@ -61,6 +61,14 @@ out["opposite_side"] = bpy.data.actions[s.last_actions.split(", ")[0]].get("mld_
 Layout.calls.clear()
 panels.MLD_PT_generate.draw(Host(), ctx)
 out["opposite_labels"] = [c[1] for c in Layout.calls if c[0] == "label"]
+
+# A first draw on the other side, its redraw on the named one: the take is the seed's second draw, and says why.
+seen = []
+named_side.side_used = lambda ask, checks: seen.append(ask) or ("opposite" if len(seen) == 1 else "named")
+out["redrawn_generate"] = sorted(bpy.ops.mld.generate())
+out["redrawn_message"] = s.last_message
+action = bpy.data.actions[s.last_actions.split(", ")[0]]
+out["redrawn_props"] = [action.get("mld_draw"), action.get("mld_side"), action.get("mld_seed")]
 emit(out)
 """
 
@@ -101,6 +109,8 @@ def test_actions_carry_coverage_and_badges_and_the_panel_shows_them(tmp_path, ti
     assert r["opposite_message"].endswith("; it turns right, not left as the prompt says (try another seed, or more "
                                           "variants)")
     assert "Side: opposite" in r["opposite_labels"]
+    assert r["redrawn_generate"] == ["FINISHED"] and r["redrawn_props"] == [1, "named", 2]
+    assert r["redrawn_message"].endswith("; draw 1 of its seed: the first did not turn left as the prompt says")
     assert len(r["check_s"]) == 2
 
 
@@ -120,4 +130,5 @@ def test_batch_manifest_records_coverage_and_badges_per_take(tmp_path, tiny_with
     for t in takes:
         assert set(t["badges"]) == {"adherence", "similarity", "skating", "float", "penetration_cm", "jitter", "side"}
         assert t["badges"]["side"] is None  # neither prompt names a side
+        assert t["draw"] == 0  # nor is drawn again
         assert t["coverage_verdict"] == t["coverage"]["verdict"]  # the Action's custom properties, flattened

@@ -71,6 +71,8 @@ GENERATE_CASES = [
     (["--seconds", "100"], "between 1 and 9.8 seconds"),
     (["--variants", "0"], "--variants must be between"),
     (["--variants", "2", "--best", "3"], "--best must be between"),
+    (["--side-redraws", "9"], "--side-redraws must be between 0 and 8"),
+    (["--side-redraws", "-1"], "--side-redraws must be between 0 and 8"),
 ]
 
 
@@ -256,6 +258,11 @@ def test_train_refuses_bad_data_and_settings_and_leaves_no_run_folder(tmp_path, 
 @pytest.mark.parametrize("argv", [["evaluate", "t2m", "--data", "x", "--threads", "-1"], ["bench", "--threads", "-1"]])
 def test_evaluate_and_bench_refuse_negative_threads(tmp_path, capsys, argv):
     refused(argv, tmp_path, capsys, "--threads must be between")
+
+
+def test_evaluate_refuses_a_bad_side_redraws_count_before_any_work(tmp_path, capsys):
+    refused(["evaluate", "t2m", "--data", "x", "--side-redraws", "9"], tmp_path, capsys,
+            "--side-redraws must be between 0 and 8")
 
 
 def test_export_model_never_deletes_what_it_did_not_write(model, tmp_path, capsys):

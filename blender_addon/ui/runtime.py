@@ -112,7 +112,7 @@ def finish_job(job, target: Target | None) -> tuple[str, str]:
     """Apply (or report) one ended job on the main thread; returns (level, message) for a report."""
     import bpy
 
-    from mld_core.take_report import opposite_side_note
+    from mld_core.take_report import opposite_side_note, redrawn_note
 
     from ..scene.key_takes import apply_result
 
@@ -155,6 +155,8 @@ def finish_job(job, target: Target | None) -> tuple[str, str]:
     side_note = opposite_side_note(first.prompt, getattr(first.badges, "side", None)) if first is not None else ""
     if side_note:
         message += f"; {side_note} (try another seed, or more variants)"
+    elif first is not None and first.draw:
+        message += f"; {redrawn_note(first.prompt, first.draw)}"
     if target.live:
         message = f"Live Preview: {message}"
     record_outcome(scene, message=message, seconds=elapsed, frames=report.frames, actions=report.actions)

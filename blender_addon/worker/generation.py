@@ -42,6 +42,7 @@ class Take:
     badges: object = None  # mld_core.eval.quality.Badges (None: not scored)
     residuals: list | None = None  # [(constraint kind, metres, met)] for a directed take
     segments: list | None = None  # [(prompt, first frame)] of a take made from a prompt sequence
+    draw: int = 0  # which z_T of its seed (0: the first; a later one when the side redraws drew it again)
 
     @property
     def frames(self) -> int:
@@ -55,6 +56,7 @@ class Take:
             "request_seed": int(self.request.seed),
             "variant": int(self.variant),
             "variants": int(self.request.variants),
+            "draw": int(self.draw),
             "steps": int(self.steps),
             "draft": bool(self.request.draft),
             "guidance": float(self.guidance) if self.guidance is not None else -1.0,
@@ -162,6 +164,7 @@ def generate(pipe, request: GenerateRequest, callback=None, check_cancel=None) -
             badges=out.badges[row] if getattr(out, "badges", None) is not None else None,
             residuals=out.residuals[row] if getattr(out, "residuals", None) else None,
             segments=list(zip([p for p, _ in sequence], out.timings["segments"])) if sequence else None,
+            draw=int(out.draws[row]) if getattr(out, "draws", None) else 0,
         )
         take.name = action_name(request.prompt, request.seed, take.variant, request.variants)
         takes.append(take)

@@ -53,6 +53,9 @@ def register(groups) -> None:
     e.add_argument("--guidance", type=float, default=None, help="guidance scale (default: the model's)")
     e.add_argument("--draft", action="store_true", help="sample with the model's Draft denoiser (its default steps "
                    "unless --steps)")
+    e.add_argument("--side-redraws", type=int, default=None, metavar="N",
+                   help="draws of a take beyond its first when it misses the side its prompt names (default: the "
+                        "model's config side_redraws; 0: the model alone, as before 2026-11-27)")
     e.add_argument("--batch-size", type=int, default=32, help="generation batch")
     e.add_argument("--action-prompt", default=None,
                    help="a2m with a text model: prompt template, {action} is replaced by the action's name "
@@ -135,7 +138,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     overrides["action_prompt"] = args.action_prompt
     settings = replace(settings, **{k: v for k, v in overrides.items() if v is not None},
                        split=args.split, seed=args.seed, batch_size=args.batch_size, vae_sample=not args.vae_mean,
-                       draft=args.draft)
+                       draft=args.draft, side_redraws=args.side_redraws)
     if settings.replications < 1:
         raise _usage("--replications must be >= 1")
     if args.threads:

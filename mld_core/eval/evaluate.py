@@ -70,6 +70,7 @@ class EvalSettings:
     num_inference_steps: int | None = None  # None: the model's default
     guidance_scale: float | None = None
     draft: bool = False  # sample with the model's Draft denoiser
+    side_redraws: int | None = None  # None: the model's config side_redraws; 0: every take its seed's first draw
     vae_sample: bool = True  # decode z ~ q(z|x) as MLD does; False: the posterior mean
     action_prompt: str = "a person does the {action} motion"  # a2m with a text model: the prompt per action
 
@@ -125,6 +126,8 @@ class PipelineGenerator:
             kw["guidance_scale"] = self.settings.guidance_scale
         if self.settings.draft:
             kw["draft"] = True
+        if self.settings.side_redraws is not None:
+            kw["side_redraws"] = self.settings.side_redraws
         return kw
 
     def _call(self, prompts: list, frames: list[int], seeds: list[int], num_variants: int = 1, **kw):

@@ -46,6 +46,8 @@ _NEGATIONS = {"without", "not", "no", "never"}  # "diagonally to the left withou
 _LABEL = {"turn": "walk-turn-{}", "drift": "walk-{}", "wave": "wave-{}-hand", "raise": "raise-up-{}-hand"}
 # What a take of each kind did, for the note on a take that used the other side.
 _DOING = {"turn": "turns {}", "drift": "drifts {}", "wave": "waves the {} hand", "raise": "raises the {} hand"}
+# What the prompt asked, for the note on a take that was drawn again.
+_ASKED = {"turn": "turn {}", "drift": "drift {}", "wave": "wave the {} hand", "raise": "raise the {} hand"}
 
 
 @dataclass(frozen=True)
@@ -65,6 +67,11 @@ class SideAsk:
         says"."""
         other = "right" if self.side == "left" else "left"
         return f"it {_DOING[self.kind].format(other)}, not {self.side} as the prompt says"
+
+    def redrawn_note(self, draw: int) -> str:
+        """Why a take is a later draw of its seed: "draw 2 of its seed: the first 2 did not turn left"."""
+        earlier = "the first" if draw == 1 else f"the first {draw}"
+        return f"draw {draw} of its seed: {earlier} did not {_ASKED[self.kind].format(self.side)} as the prompt says"
 
 
 def _words(prompt: str) -> list[str]:

@@ -242,9 +242,7 @@ def rank_output(out, scorer: QualityScorer, num_variants: int, prompts: Sequence
     for start in range(0, len(badges), num_variants):
         group = list(range(start, start + num_variants))
         order += [group[k] for k in best_first([badges[i] for i in group], [out.seeds[i] for i in group])]
-    return replace(out, features=out.features[order], joints=out.joints[order], lengths=out.lengths[order],
-                   prompts=[out.prompts[i] for i in order], seeds=[out.seeds[i] for i in order],
-                   badges=[badges[i] for i in order])
+    return replace(out, badges=badges).select(order)
 
 
 def format_table(seeds: Sequence[int], badges: Sequence[Badges]) -> str:
