@@ -89,6 +89,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=0, help="seed of the first take; take i uses seed+i (0)")
     parser.add_argument("--steps", type=int, default=50, help="diffusion steps (50; a Draft runs its model's own)")
     parser.add_argument("--guidance", type=float, default=None, help="guidance scale (default: the model's)")
+    parser.add_argument("--side-redraws", type=int, default=None, metavar="N",
+                        help="a take that misses the side its prompt names is drawn again from its seed, at most N "
+                             "times (default: the model's, 2; 0: never, as takes made before 2026-11-27)")
     parser.add_argument("--draft", action="store_true",
                         help="Draft mode: the model's distilled denoiser and a guided step of its own (about 10x faster)")
     parser.add_argument("--model", metavar="DIR", help="model folder (default: the bundled model)")
@@ -403,6 +406,9 @@ def checked_inputs(args, addon) -> _Inputs:
         lines, default_seconds=args.seconds, seed=args.seed, extras=extras, steps=args.steps, guidance=args.guidance,
         variants=1, model_dir=model_dir, device=args.device, threads=args.threads, draft=args.draft,
     )
+    if args.side_redraws is not None:
+        redraws = inputs.int_in_range(args.side_redraws, "--side-redraws", 0, inputs.MAX_SIDE_REDRAWS)
+        requests = [r.with_(extra={**r.extra, "side_redraws": redraws}) for r in requests]
     inputs.check_fps(args.fps, "--fps")
     inputs.number_in_range(args.tolerance, "--tolerance", 0, 180)
     paths = output_paths(args)

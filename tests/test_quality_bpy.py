@@ -132,3 +132,29 @@ def test_batch_manifest_records_coverage_and_badges_per_take(tmp_path, tiny_with
         assert t["badges"]["side"] is None  # neither prompt names a side
         assert t["draw"] == 0  # nor is drawn again
         assert t["coverage_verdict"] == t["coverage"]["verdict"]  # the Action's custom properties, flattened
+
+
+def test_the_batch_draws_a_take_again_unless_told_not_to(tmp_path, tiny_with_index):
+    import json
+
+    from bpy_util import run_python
+    from mld_core.pipeline import MLDPipeline
+
+    prompt = "a person walks and turns left"
+    expected = MLDPipeline.from_pretrained(tiny_with_index)(prompt, 1.5, seed=0, num_inference_steps=2).draws[0]
+    assert expected > 0  # the tiny model's first draw of seed 0 misses the left turn
+    base = [REPO / "blender_addon" / "batch.py", "--prompt", prompt, "--model", tiny_with_index, "--steps", "2",
+            "--seconds", "1.5", "--seed", "0"]
+    draws = {}
+    for name, extra in (("default", []), ("off", ["--side-redraws", "0"])):
+        out = tmp_path / f"{name}.blend"
+        proc = run_python(base + ["--out", out] + extra, user_dir=tmp_path / "blender_user", timeout=180)
+        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+        draws[name] = json.loads(out.with_suffix(".json").read_text())["takes"][0]["draw"]
+        if name == "default":
+            assert f"note: line 1: draw {expected} of its seed: the first" in proc.stderr
+    assert draws == {"default": expected, "off": 0}
+    proc = run_python(base + ["--out", tmp_path / "bad.blend", "--side-redraws", "9"],
+                      user_dir=tmp_path / "blender_user", timeout=180)
+    assert proc.returncode == 2 and "--side-redraws must be between 0 and 8" in proc.stderr
+    assert not (tmp_path / "bad.blend").exists()

@@ -117,13 +117,16 @@ def generate(pipe, request: GenerateRequest, callback=None, check_cancel=None) -
     coverage = pipe.coverage([request.prompt])[0] if hasattr(pipe, "coverage") else None
     constraints, sequence = request.extra.get("constraints"), request.extra.get("sequence")
     steps = None if request.draft else request.steps  # a Draft runs its own few steps
-    draft = {"draft": True} if request.draft else {}  # (pipelines without a Draft mode take no draft argument)
+    options = {"draft": True} if request.draft else {}  # (pipelines without a Draft mode take no draft argument)
+    if request.extra.get("side_redraws") is not None:  # the batch's --side-redraws (else the model's config)
+        options["side_redraws"] = request.extra["side_redraws"]
     if sequence:  # one motion from prompt segments (a batch job)
-        out = pipe.sequence(sequence, seed=request.seed, num_inference_steps=steps, guidance_scale=guidance, **draft)
+        out = pipe.sequence(sequence, seed=request.seed, num_inference_steps=steps, guidance_scale=guidance,
+                            **options)
     else:
         out = pipe([request.prompt], seconds=request.seconds, num_inference_steps=steps,
                    guidance_scale=guidance, seed=request.seed, num_variants=request.variants, callback=callback,
-                   rank=request.extra.get("rank", True), constraints=constraints or None, **draft)
+                   rank=request.extra.get("rank", True), constraints=constraints or None, **options)
     generated = time.perf_counter() - start
     if check_cancel is not None:
         check_cancel()
