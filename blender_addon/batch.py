@@ -473,7 +473,8 @@ def key_every_line(args, addon, inp: _Inputs, pipe, scene, obj) -> tuple[list, l
         if side_note:
             print(f"warning: line {line.line}: {side_note} (try another seed, or more variants)", file=sys.stderr)
         elif take.draw:
-            print(f"note: line {line.line}: {redrawn_note(take.prompt, take.draw)}", file=sys.stderr)
+            note = redrawn_note(take.prompt, take.draw, getattr(take.badges, "side", "named"))
+            print(f"note: line {line.line}: {note}", file=sys.stderr)
         for kind, metres, met in take.residuals or []:
             if not met:
                 print(f"warning: job {line.line}: the {kind} constraint is off by {metres * 100:.1f} cm (best effort)",

@@ -69,18 +69,23 @@ def opposite_side_warnings(out) -> list[str]:
     return lines
 
 
-def redrawn_note(prompt: str, draw: int) -> str:
+def redrawn_note(prompt: str, draw: int, side: str | None = "named") -> str:
     """'' for a seed's first draw; else why the take is a later one ("draw 1 of its seed: the first did not turn
-    left as the prompt says")."""
+    left as the prompt says"), given the take's side badge ``side``."""
     ask = named_side.asked_side(prompt) if draw else None
-    return "" if ask is None else ask.redrawn_note(draw)
+    return "" if ask is None else ask.redrawn_note(draw, side)
 
 
 def redrawn_notes(out) -> list[str]:
     """One line per take of ``out`` that is a later draw of its seed (the pipeline's side redraws), saying why."""
     lines = []
     for row, prompt in enumerate(out.prompts):
-        note = redrawn_note(prompt, out.draws[row] if out.draws else 0)
+        draw = out.draws[row] if out.draws else 0
+        if not draw:
+            continue
+        side = out.badges[row].side if out.badges is not None else \
+            side_badge(prompt, out.joints[row, : int(out.lengths[row])], out.fps)
+        note = redrawn_note(prompt, draw, side)
         if note:
             lines.append(f"note: take {row} (seed {out.seeds[row]}) is {note}")
     return lines

@@ -39,6 +39,7 @@ def _side_by_draw(monkeypatch, draws, verdicts):
         raise AssertionError("a take that is none of the expected draws")
 
     monkeypatch.setattr(quality, "side_badge", side)
+    monkeypatch.setattr(take_report, "side_badge", side)
     return calls
 
 
@@ -63,6 +64,8 @@ def test_when_no_draw_uses_the_side_a_neither_beats_an_opposite_and_otherwise_th
     draws = _draws(pipe, TURN_LEFT, 2.0, 9, 3)
     _side_by_draw(monkeypatch, draws, ["opposite", "neither", "opposite"])
     assert pipe(TURN_LEFT, 2.0, seed=9).draws == [1]
+    assert take_report.redrawn_note(TURN_LEFT, 1, "neither") == (
+        "draw 1 of its seed: no draw did turn left as the prompt says; this one at least does not turn right")
     _side_by_draw(monkeypatch, draws, ["neither", "opposite", "neither"])
     out = pipe(TURN_LEFT, 2.0, seed=9)
     assert out.draws == [0] and take_report.redrawn_notes(out) == []

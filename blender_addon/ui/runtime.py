@@ -156,7 +156,7 @@ def finish_job(job, target: Target | None) -> tuple[str, str]:
     if side_note:
         message += f"; {side_note} (try another seed, or more variants)"
     elif first is not None and first.draw:
-        message += f"; {redrawn_note(first.prompt, first.draw)}"
+        message += f"; {redrawn_note(first.prompt, first.draw, getattr(first.badges, 'side', 'named'))}"
     if target.live:
         message = f"Live Preview: {message}"
     record_outcome(scene, message=message, seconds=elapsed, frames=report.frames, actions=report.actions)

@@ -68,10 +68,17 @@ class SideAsk:
         other = "right" if self.side == "left" else "left"
         return f"it {_DOING[self.kind].format(other)}, not {self.side} as the prompt says"
 
-    def redrawn_note(self, draw: int) -> str:
-        """Why a take is a later draw of its seed: "draw 2 of its seed: the first 2 did not turn left"."""
+    def redrawn_note(self, draw: int, used: str | None = "named") -> str:
+        """Why a take is a later draw of its seed: "draw 2 of its seed: the first 2 did not turn left as the prompt
+        says"; when the draw kept does not use the side either (``used`` "neither"), that it at least does not use
+        the other one."""
+        asked = _ASKED[self.kind].format(self.side)
+        if used == "neither":
+            other = _ASKED[self.kind].format("right" if self.side == "left" else "left")
+            return (f"draw {draw} of its seed: no draw did {asked} as the prompt says; this one at least does not "
+                    f"{other}")
         earlier = "the first" if draw == 1 else f"the first {draw}"
-        return f"draw {draw} of its seed: {earlier} did not {_ASKED[self.kind].format(self.side)} as the prompt says"
+        return f"draw {draw} of its seed: {earlier} did not {asked} as the prompt says"
 
 
 def _words(prompt: str) -> list[str]:
