@@ -114,3 +114,15 @@ def test_busy_note_and_other_load():
     sum(i * i for i in range(200_000))  # our own work does not count as other load
     value = probe.cpus()
     assert value is None or value >= 0.0
+
+
+def test_aits_times_one_draw_per_prompt():
+    """A take that misses its prompt's side is not drawn again while timing (AITS: one sample per prompt)."""
+    calls = []
+
+    def pipe(prompts, **kw):
+        calls.append(kw)
+        return None
+
+    time_pipeline(pipe, ["a person turns left while walking"], warmup=0)
+    assert [c["side_redraws"] for c in calls] == [0]
