@@ -18,6 +18,7 @@ import torch
 
 from mld_core.inputs import InputError, check_prompt, finite_number, whole_number
 from mld_core.motion import skeleton as sk
+from mld_core.motion.features import FOOT_CONTACT, features_to_joints
 from mld_core.motion.skeleton import JOINT_NAMES
 
 JOINT_INDEX = {name: i for i, name in enumerate(JOINT_NAMES)}
@@ -144,6 +145,7 @@ class Constraints:
     smooth_weight: float = 0.1  # mean squared feature acceleration
     prior_weight: float = 1e-3  # keeps latent and features near the sample: the motion stays the prompt's
     planted_weight: float = 1.0  # planted feet (the sample's contact channels) keep still while the root moves
+    planted_toe_height_m: float = 0.05  # ... and so does a toe this near the take's lowest toe (0: the channels only)
     bone_weight: float = 10.0  # bones keep the reference skeleton's lengths (else planted feet stretch the legs)
     slide_weight: float = 1.0  # with stepping on, the latent stage also lowers the feet's slide (stepping.slide_cost)
     keyed_slide_weight: float = 0.03  # ... instead, with pose keys among the items (keys place the feet themselves)
@@ -175,11 +177,28 @@ class Constraints:
         return out
 
 
+FEET = [7, 10, 8, 11]  # left ankle, left toe (foot), right ankle, right toe: the order of the contact channels
+
+
+def planted_feet(features: torch.Tensor, toe_height_m: float = 0.0) -> torch.Tensor:
+    """(B, T, 4) bool, the feet the feature stage holds still (left ankle, left toe, right ankle, right toe): those
+    the decoded features' contact channels plant, and each toe within ``toe_height_m`` of the take's lowest toe
+    (where foot skating is counted: a run's channels miss many of those frames). ``features`` (B, T, 263)
+    denormalised, every row of one length."""
+    planted = features[..., FOOT_CONTACT] > 0.5  # (B, T, 4)
+    if toe_height_m > 0:
+        toes = features_to_joints(features)[:, :, [FEET[1], FEET[3]], 1]  # (B, T, 2) heights
+        low = toes - toes.amin(dim=(1, 2), keepdim=True) < toe_height_m  # (B, T, 2)
+        planted = planted.clone()
+        planted[..., [1, 3]] |= low
+    return planted
+
+
 def planted_foot_speed(joints: torch.Tensor, contacts: torch.Tensor) -> torch.Tensor:
     """Mean squared ground speed (m/frame)^2 of the ankles and toes while ``contacts`` (B, T, 4: left ankle, left
     toe, right ankle, right toe) says they are planted, per take, averaged over the takes (each take's share does
     not depend on the others': a batch equals single runs); joints (B, T, 22, 3)."""
-    feet = joints[:, :, [7, 10, 8, 11]][..., [0, 2]]  # (B, T, 4, 2)
+    feet = joints[:, :, FEET][..., [0, 2]]  # (B, T, 4, 2)
     step = feet[:, 1:] - feet[:, :-1]  # (B, T-1, 4, 2)
     planted = (contacts[:, 1:] & contacts[:, :-1]).to(joints.dtype)  # (B, T-1, 4)
     per_take = ((step ** 2).sum(-1) * planted).sum(dim=(1, 2)) / planted.sum(dim=(1, 2)).clamp(min=1.0)  # (B,)

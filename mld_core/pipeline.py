@@ -26,7 +26,7 @@ from mld_core import inputs
 from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, CheckpointError, ModelConfig, load_config,
                                  load_weights)
 from mld_core.models.denoiser import LatentDenoiser
-from mld_core.constraints import bone_stretch, planted_foot_speed
+from mld_core.constraints import bone_stretch, planted_feet, planted_foot_speed
 from mld_core.motion.features import FOOT_CONTACT, features_to_joints
 from mld_core.motion.repair import RepairConfig, lock_feet, repair_features
 from mld_core.models.transformer import native_bf16, packing_available
@@ -375,7 +375,7 @@ class MLDPipeline:
                 (loss * len(z0)).backward(inputs=[z_opt])
                 opt.step()
             x0 = decode(z_opt).detach()
-            contacts = (x0 * std + mean)[..., FOOT_CONTACT] > 0.5  # (B, T, 4) ankles and toes the sample plants
+            contacts = planted_feet(x0 * std + mean, constraints.planted_toe_height_m)  # (B, T, 4) feet held still
             x = x0.clone().requires_grad_(True)
             opt = torch.optim.Adam([x], lr=constraints.feature_lr)
             for _ in range(constraints.feature_steps):  # 5b. the features, kept smooth and near the decoded ones
