@@ -62,7 +62,7 @@ def _addon_package():
 _addon_package()  # puts mld_core (the vendored copy or the checkout) on sys.path
 from mld_core import inputs  # noqa: E402
 from mld_core.fileio import OutputSet  # noqa: E402
-from mld_core.take_report import opposite_side_note, redrawn_note  # noqa: E402
+from mld_core.take_report import side_report  # noqa: E402
 
 
 def script_argv(argv=None) -> list[str]:
@@ -469,12 +469,9 @@ def key_every_line(args, addon, inp: _Inputs, pipe, scene, obj) -> tuple[list, l
         take.name = report.actions[0]
         if take.coverage is not None and take.coverage.verdict == "unknown":
             print(f"warning: line {line.line}: {take.coverage.warning()}", file=sys.stderr)
-        side_note = opposite_side_note(take.prompt, getattr(take.badges, "side", None))
-        if side_note:
-            print(f"warning: line {line.line}: {side_note} (try another seed, or more variants)", file=sys.stderr)
-        elif take.draw:
-            note = redrawn_note(take.prompt, take.draw, getattr(take.badges, "side", "named"))
-            print(f"note: line {line.line}: {note}", file=sys.stderr)
+        level, side_text = side_report(take.prompt, getattr(take.badges, "side", None), take.draw)
+        if level:
+            print(f"{level}: line {line.line}: {side_text}", file=sys.stderr)
         for kind, metres, met in take.residuals or []:
             if not met:
                 print(f"warning: job {line.line}: the {kind} constraint is off by {metres * 100:.1f} cm (best effort)",

@@ -233,7 +233,7 @@ def _run(args, take_report) -> int:
     _warn_unmet(out)
     out = take_report.keep_best(out, args.variants, args.best)
     if cond == "text" and not args.unconditional and args.sequence is None:  # a sequence's sides are per segment
-        for line in take_report.redrawn_notes(out) + take_report.opposite_side_warnings(out):
+        for line in take_report.side_lines(out):
             print(line, file=sys.stderr)
     if out.badges is not None:
         print(take_report.badge_table(out))

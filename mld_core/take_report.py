@@ -53,22 +53,6 @@ def opposite_side_note(prompt: str, side: str | None) -> str:
     return "" if ask is None else ask.opposite_note()
 
 
-def opposite_side_warnings(out) -> list[str]:
-    """One warning line per take of ``out`` that used only the side opposite the one its prompt names (from its
-    side badge when ranked, else checked here)."""
-    lines = []
-    for row, prompt in enumerate(out.prompts):
-        if out.badges is not None:
-            side = out.badges[row].side
-        else:
-            side = side_badge(prompt, out.joints[row, : int(out.lengths[row])], out.fps)
-        note = opposite_side_note(prompt, side)
-        if note:
-            lines.append(f"warning: take {row} (seed {out.seeds[row]}): {note}; try another --seed, or --variants 4 "
-                         "--best 1 (ranking puts such takes last)")
-    return lines
-
-
 def redrawn_note(prompt: str, draw: int, side: str | None = "named") -> str:
     """'' for a seed's first draw; else why the take is a later one ("draw 1 of its seed: the first did not turn
     left as the prompt says"), given the take's side badge ``side``."""
@@ -76,18 +60,34 @@ def redrawn_note(prompt: str, draw: int, side: str | None = "named") -> str:
     return "" if ask is None else ask.redrawn_note(draw, side)
 
 
-def redrawn_notes(out) -> list[str]:
-    """One line per take of ``out`` that is a later draw of its seed (the pipeline's side redraws), saying why."""
+PANEL_RETRY = " (try another seed, or more variants)"  # the add-on's report and the batch
+CLI_RETRY = "; try another --seed, or --variants 4 --best 1 (ranking puts such takes last)"
+
+
+def side_report(prompt: str, side: str | None, draw: int, retry: str = PANEL_RETRY) -> tuple[str, str]:
+    """What the user is told about a take's side, from its side badge ``side`` and its ``draw``: ("warning", what it
+    did against the prompt + ``retry``) when it used only the opposite side; ("note", why it is a later draw of its
+    seed) when the side redraws drew it again; else ("", "")."""
+    note = opposite_side_note(prompt, side)
+    if note:
+        return "warning", note + retry
+    note = redrawn_note(prompt, draw, side)
+    return ("note", note) if note else ("", "")
+
+
+def side_lines(out) -> list[str]:
+    """``generate``'s line per take of ``out`` that used the opposite side or is a later draw (side_report); each
+    take's side from its badge when ranked, else checked here."""
     lines = []
     for row, prompt in enumerate(out.prompts):
-        draw = out.draws[row] if out.draws else 0
-        if not draw:
-            continue
-        side = out.badges[row].side if out.badges is not None else \
-            side_badge(prompt, out.joints[row, : int(out.lengths[row])], out.fps)
-        note = redrawn_note(prompt, draw, side)
-        if note:
-            lines.append(f"note: take {row} (seed {out.seeds[row]}) is {note}")
+        if out.badges is not None:
+            side = out.badges[row].side
+        else:
+            side = side_badge(prompt, out.joints[row, : int(out.lengths[row])], out.fps)
+        level, text = side_report(prompt, side, out.draws[row] if out.draws else 0, CLI_RETRY)
+        if level:
+            joint = " is" if level == "note" else ":"  # "take 0 (seed 41) is draw 1 ...", "take 0 (seed 41): it turns"
+            lines.append(f"{level}: take {row} (seed {out.seeds[row]}){joint} {text}")
     return lines
 
 

@@ -105,15 +105,16 @@ def test_where_the_user_meets_an_opposite_take(turn_left_clip):
     # the CLI's warning lines: from the badges when ranked, else checked on the joints
     joints = np.stack([turn_left_clip, mirror_joints(turn_left_clip)])  # (2, T, 22, 3)
     out = SimpleNamespace(prompts=["someone walks and turns to the left"] * 2, joints=joints, seeds=[3, 4], fps=20,
-                          lengths=np.array([len(turn_left_clip)] * 2), badges=None)
-    lines = take_report.opposite_side_warnings(out)
+                          lengths=np.array([len(turn_left_clip)] * 2), badges=None, draws=None)
+    lines = take_report.side_lines(out)
     assert lines == ["warning: take 1 (seed 4): it turns right, not left as the prompt says; try another --seed, or "
                      "--variants 4 --best 1 (ranking puts such takes last)"]
     out.badges = [_badges(10, "opposite"), _badges(10, "named")]
-    assert [line.split(":")[1] for line in take_report.opposite_side_warnings(out)] == [" take 0 (seed 3)"]
-    assert take_report.opposite_side_note("a person waves the right hand", "opposite") == \
-        "it waves the left hand, not right as the prompt says"
-    assert take_report.opposite_side_note("a person waves the right hand", "named") == ""
+    assert [line.split(":")[1] for line in take_report.side_lines(out)] == [" take 0 (seed 3)"]
+    # the add-on's report and the batch: the same words, their own hint
+    assert take_report.side_report("a person waves the right hand", "opposite", 0) == \
+        ("warning", "it waves the left hand, not right as the prompt says (try another seed, or more variants)")
+    assert take_report.side_report("a person waves the right hand", "named", 0) == ("", "")
 
 
 def test_calibration_script_reads_captions_and_checks_them_on_their_captures(tmp_path, turn_left_clip, capsys):

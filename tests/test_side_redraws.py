@@ -56,7 +56,7 @@ def test_a_take_that_misses_its_side_is_the_seeds_first_draw_that_uses_it(pipe, 
     assert out.draws == [2] and out.seeds == [7]
     np.testing.assert_array_equal(out.joints[0], draws[2])
     assert "side_redraws_s" in out.timings
-    assert take_report.redrawn_notes(out) == [
+    assert take_report.side_lines(out) == [
         "note: take 0 (seed 7) is draw 2 of its seed: the first 2 did not turn left as the prompt says"]
 
 
@@ -64,11 +64,13 @@ def test_when_no_draw_uses_the_side_a_neither_beats_an_opposite_and_otherwise_th
     draws = _draws(pipe, TURN_LEFT, 2.0, 9, 3)
     _side_by_draw(monkeypatch, draws, ["opposite", "neither", "opposite"])
     assert pipe(TURN_LEFT, 2.0, seed=9).draws == [1]
-    assert take_report.redrawn_note(TURN_LEFT, 1, "neither") == (
-        "draw 1 of its seed: no draw did turn left as the prompt says; this one at least does not turn right")
+    assert take_report.side_report(TURN_LEFT, "neither", 1) == (
+        "note", "draw 1 of its seed: no draw did turn left as the prompt says; this one at least does not turn right")
+    assert take_report.side_report(TURN_LEFT, "named", 1)[0] == "note"
+    assert take_report.side_report(TURN_LEFT, "opposite", 2)[0] == "warning"  # still opposite: the warning wins
     _side_by_draw(monkeypatch, draws, ["neither", "opposite", "neither"])
     out = pipe(TURN_LEFT, 2.0, seed=9)
-    assert out.draws == [0] and take_report.redrawn_notes(out) == []
+    assert out.draws == [0] and take_report.side_lines(out) == []
     np.testing.assert_array_equal(out.joints[0], draws[0])
 
 

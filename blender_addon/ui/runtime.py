@@ -112,7 +112,7 @@ def finish_job(job, target: Target | None) -> tuple[str, str]:
     """Apply (or report) one ended job on the main thread; returns (level, message) for a report."""
     import bpy
 
-    from mld_core.take_report import opposite_side_note, redrawn_note
+    from mld_core.take_report import side_report
 
     from ..scene.key_takes import apply_result
 
@@ -152,11 +152,9 @@ def finish_job(job, target: Target | None) -> tuple[str, str]:
     elapsed = job.elapsed
     message = f"{', '.join(report.actions)}: {report.frames} frames at {report.fps:g} fps in {elapsed:.2f} s"
     first = job.result.takes[0] if job.result.takes else None
-    side_note = opposite_side_note(first.prompt, getattr(first.badges, "side", None)) if first is not None else ""
-    if side_note:
-        message += f"; {side_note} (try another seed, or more variants)"
-    elif first is not None and first.draw:
-        message += f"; {redrawn_note(first.prompt, first.draw, getattr(first.badges, 'side', 'named'))}"
+    if first is not None:
+        _, side_text = side_report(first.prompt, getattr(first.badges, "side", None), first.draw)
+        message += f"; {side_text}" if side_text else ""
     if target.live:
         message = f"Live Preview: {message}"
     record_outcome(scene, message=message, seconds=elapsed, frames=report.frames, actions=report.actions)
