@@ -317,14 +317,24 @@ class MLDPipeline:
         out[rows[worse]] = sampled[rows[worse]]
         return out
 
-    def keep_less_skating_met(self, sampled: torch.Tensor, stepped: torch.Tensor, features: np.ndarray,
-                              lengths: torch.Tensor, constraints) -> np.ndarray:
-        """Per constrained take, ``features`` (B, T, F: the constraints met from its stepped latent) unless the
-        constraints met from its sampled latent (B, n, d) without the slide cost meet as many of them and skate
-        less; then those (config ``stepping.keep_if_less_skating``). Every take is met twice: even one whose
-        latent stepping left as sampled was met with the feet's slide in the cost."""
+    def meet_stepped_or_not(self, sampled: torch.Tensor, stepped: torch.Tensor, lengths: torch.Tensor,
+                            constraints) -> np.ndarray:
+        """Features (B, T, F) of constrained takes: the constraints met from each stepped latent (B, n, d) with the
+        feet's slide in the cost, unless met from its sampled latent without it they meet as many constraints and
+        skate less; then those (config ``stepping.keep_if_less_skating``). Both are met in one batch of 2B rows
+        (rows are independent: a batch equals single runs); every take is met twice, even one whose latent stepping
+        left as sampled."""
+        B = len(sampled)
+        with_slide = torch.arange(2 * B) < B
+        both = self.meet_constraints(torch.cat([stepped, sampled]), torch.cat([lengths, lengths]), constraints,
+                                     self.config.stepping, slide_rows=with_slide)  # (2B, T, F)
+        return self.keep_less_skating_met(both[:B], both[B:], lengths, constraints)
+
+    def keep_less_skating_met(self, features: np.ndarray, unstepped: np.ndarray, lengths: torch.Tensor,
+                              constraints) -> np.ndarray:
+        """Per constrained take, ``features`` (B, T, F: met from its stepped latent) unless ``unstepped`` (met from
+        its sampled latent without the slide cost) meets as many constraints and skates less; then that."""
         n = int(lengths[0])
-        unstepped = self.meet_constraints(sampled, lengths, constraints)  # (B, T, F)
         out = features.copy()
         for i in range(len(features)):
             (met_s, skate_s), (met_u, skate_u) = (self._met_and_skating(f[:n], constraints)
@@ -342,12 +352,12 @@ class MLDPipeline:
         return met, foot_skating_ratio(joints, self.config.fps)
 
     def meet_constraints(self, z: torch.Tensor, lengths: torch.Tensor, constraints,
-                         stepping: SteppingConfig | None = None) -> np.ndarray:
+                         stepping: SteppingConfig | None = None, slide_rows: torch.Tensor | None = None) -> np.ndarray:
         """Denormalised features (B, T, F) of the sampled latents z (B, n, d) refined to meet ``constraints``: first
         Adam steps on the latent through the decoder (the motion stays one the model makes; with ``stepping``, the
-        feet's ground slide costs too, so that a stepped take keeps stepping), then on the decoded features
-        themselves with a smoothness term (what a latent of this size cannot reach exactly). All rows must have
-        one length."""
+        feet's ground slide costs too, so that a stepped take keeps stepping: in the rows ``slide_rows`` (B,) bool
+        marks, default all), then on the decoded features themselves with a smoothness term (what a latent of this
+        size cannot reach exactly). All rows must have one length."""
         if len(set(lengths.tolist())) != 1:
             raise InputError("constraints need every motion of a call to have the same length")
         constraints.check_frames(int(lengths[0]))
@@ -361,6 +371,9 @@ class MLDPipeline:
                 return self._decode_with_grad(latent, lengths)
 
             slide_weight = constraints.latent_slide_weight()
+            if stepping is not None:  # (B,) the slide's weight per row
+                on = torch.ones(len(z0), dtype=torch.bool) if slide_rows is None else torch.as_tensor(slide_rows)
+                row_slide = slide_weight * on.to(device=z0.device, dtype=torch.float32)
             z_opt = z0.clone().requires_grad_(True)
             opt = torch.optim.Adam([z_opt], lr=constraints.lr)
             for _ in range(constraints.steps):  # 5a. the latent
@@ -369,7 +382,7 @@ class MLDPipeline:
                 loss = constraints.cost(joints) + constraints.prior_weight * ((z_opt - z0) ** 2).mean()
                 if stepping is not None:
                     valid = valid_frames(lengths, joints.shape[1])
-                    loss = loss + slide_weight * slide_cost(joints, valid, stepping).mean()
+                    loss = loss + (row_slide * slide_cost(joints, valid, stepping)).mean()
                 # x B: every term is a mean over the takes, so each take's gradient is its own cost's, whatever the
                 # batch (a batch equals single runs); the latent's gradient only, not the decoder's weights'
                 (loss * len(z0)).backward(inputs=[z_opt])
@@ -595,8 +608,8 @@ class MLDPipeline:
         #    A Final take's z_0 is first refined so that its feet step instead of sliding (step_feet), free or
         #    constrained; a free one keeps the sample where that, repaired, skates less (keep_less_skating: also
         #    with repair=False and step=True, as a sequence's first segment is made, repaired once joined), a
-        #    constrained one where the sample, met without stepping, skates less and meets as much
-        #    (keep_less_skating_met).
+        #    constrained one where the sample, met without stepping, skates less and meets as much (both met in one
+        #    batch: meet_stepped_or_not).
         t0 = time.perf_counter()
         stepped = ((repair if step is None else step) and not draft and self.config.stepping.steps > 0
                    and self.config.vae.feature_dim == 263)
@@ -606,10 +619,11 @@ class MLDPipeline:
                 z = self.keep_less_skating(sampled, z, lengths)
             timings["stepping_s"] = time.perf_counter() - t0
             t0 = time.perf_counter()  # decode_s below: the decoding alone (AITS), or meeting the constraints
-        if constraints:
+        if constraints and stepped and self.config.stepping.keep_if_less_skating:
+            features = self.meet_stepped_or_not(sampled, z, lengths, constraints)
+            timings["constraints_s"] = time.perf_counter() - t0
+        elif constraints:
             features = self.meet_constraints(z, lengths, constraints, self.config.stepping if stepped else None)
-            if stepped and self.config.stepping.keep_if_less_skating:
-                features = self.keep_less_skating_met(sampled, z, features, lengths, constraints)
             timings["constraints_s"] = time.perf_counter() - t0
         else:
             features = self.latents_to_features(z, lengths, draft)

@@ -248,6 +248,23 @@ def test_a_constrained_take_keeps_the_unstepped_one_only_if_it_skates_less_and_m
     assert any(outcomes) and not all(outcomes), outcomes  # both outcomes occur
 
 
+def test_meeting_with_and_without_the_slide_in_one_batch_equals_meeting_each_alone(tmp_path):
+    from mld_core.constraints import Constraints, Loop
+
+    pipe = _pipe(tmp_path, min_slide_share=0.0, lr=0.5, steps=30)
+    constraints = Constraints([Loop()], steps=4, feature_steps=4)
+    z = torch.randn(3, pipe.config.vae.latent_tokens, pipe.config.vae.latent_dim,
+                    generator=torch.Generator().manual_seed(0))
+    lengths = torch.tensor([40, 40, 40])
+    slide = torch.tensor([True, False, True])
+    both = pipe.meet_constraints(z, lengths, constraints, pipe.config.stepping, slide_rows=slide)
+    with_slide = pipe.meet_constraints(z, lengths, constraints, pipe.config.stepping)
+    without = pipe.meet_constraints(z, lengths, constraints)
+    assert np.abs(with_slide[1] - without[1]).max() > 1e-3  # the slide changes the take: the mask can fail
+    for row in range(3):
+        np.testing.assert_allclose(both[row], (with_slide if slide[row] else without)[row], atol=1e-4)
+
+
 def test_a_stepped_walk_backwards_of_the_bundled_model_skates_less():
     from mld_core.pipeline import MLDPipeline
 
