@@ -8,8 +8,9 @@
   error over the path, and the foot skating ratio (mld_core.eval.quality) against free samples of the prompt;
 - loops: the largest joint gap between the last and the first frame, and the velocity jump across the seam;
 - sequences: walk 3 s -> wave the right hand 2 s -> bow 2 s (and run -> walk-back): each segment's content check
-  (mld_core.eval.physical) against free samples of its prompt, and the largest joint jerk at each seam against the
-  real test clips' 95th percentile of the same measure;
+  (mld_core.eval.physical) on its own seconds (after the half second it repeats of the previous segment's end)
+  against free samples of its prompt, and the largest joint jerk at each seam (from just before its cross-fade to
+  just after it) against the real test clips' 95th percentile of the same measure;
 - time per constrained 4 s take against the free one.
 """
 
@@ -129,15 +130,16 @@ def sequences(pipe, seeds: int, data: Path) -> list[dict]:
         for seed in range(seeds):
             out = pipe.sequence([(p, s) for p, s, _ in segments], seed=seed)
             starts = out.timings["segments"] + [int(out.lengths[0])]
-            overlap = 10  # a later segment's first 0.5 s repeat the previous one's last: judge its own frames
-            jerk = max_jerk(out.joints[0])
+            overlap = 10  # a later segment's first 0.5 s repeat the previous one's last: judge its own frames,
+            jerk = max_jerk(out.joints[0])  # its seconds from there (a middle one's last 0.5 s fade into the next)
             for k, (prompt, seconds, label) in enumerate(segments):
                 own = starts[k] + (overlap if k else 0)
-                passed.append(physical.passes(out.joints[0, own:starts[k + 1]], label))
+                end = min(own + int(round(seconds * pipe.fps)), starts[k + 1] + overlap)
+                passed.append(physical.passes(out.joints[0, own:end], label))
                 free = pipe([prompt], seconds=seconds, seed=seed)
                 free_passed.append(physical.passes(free.joints[0, : int(free.lengths[0])], label))
-                if k:
-                    seams.append(float(jerk[max(0, starts[k] - 3): starts[k] + 2].max()))
+                if k:  # the seam: from just before the fade to just after it (where the repeated half second ends)
+                    seams.append(float(jerk[max(0, starts[k] - 3): starts[k] + overlap + 2].max()))
         rows.append({"sequence": " -> ".join(label for _, _, label in segments), "pass": np.mean(passed),
                      "free_pass": np.mean(free_passed), "seam_jerk": max(seams), "real_p95": p95})
     return rows
