@@ -143,6 +143,7 @@ class Constraints:
     feature_steps: int = 120  # then on the decoded features
     feature_lr: float = 0.05
     smooth_weight: float = 0.1  # mean squared feature acceleration
+    smooth_change_only: bool = False  # ... of the change to the decoded features (their own motion is not damped)
     prior_weight: float = 1e-3  # keeps latent and features near the sample: the motion stays the prompt's
     planted_weight: float = 1.0  # planted feet (the sample's contact channels) keep still while the root moves
     planted_toe_height_m: float = 0.05  # ... and so does a toe this near the take's lowest toe (0: the channels only)

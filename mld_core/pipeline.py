@@ -393,7 +393,8 @@ class MLDPipeline:
             opt = torch.optim.Adam([x], lr=constraints.feature_lr)
             for _ in range(constraints.feature_steps):  # 5b. the features, kept smooth and near the decoded ones
                 opt.zero_grad()
-                accel = x[:, 2:] - 2 * x[:, 1:-1] + x[:, :-2]
+                moved = x - x0 if constraints.smooth_change_only else x
+                accel = moved[:, 2:] - 2 * moved[:, 1:-1] + moved[:, :-2]
                 joints = features_to_joints(x * std + mean)
                 loss = (constraints.cost(joints) + constraints.smooth_weight * (accel ** 2).mean()
                         + constraints.prior_weight * ((x - x0) ** 2).mean()
@@ -689,10 +690,10 @@ class MLDPipeline:
                  **kwargs) -> MLDOutput:
         """One motion from ``[(prompt, seconds), ...]``: each segment continues the previous one (its first
         ``overlap_s`` seconds are constrained to the previous one's last pose, by refining the features only: the
-        latent stays the segment prompt's sample; the features cross-fade there); the root velocities join, so
-        position and facing carry over and each segment moves as its prompt says. Segment k uses seed ``seed + k``
-        and is stepped and repaired as a free take of its own. Returns one row; ``timings["segments"]`` holds each
-        segment's first frame."""
+        latent stays the segment prompt's sample, and only the change is kept smooth, so its own motion is not
+        damped; the features cross-fade there); the root velocities join, so position and facing carry over and
+        each segment moves as its prompt says. Segment k uses seed ``seed + k`` and is stepped and repaired as a
+        free take of its own. Returns one row; ``timings["segments"]`` holds each segment's first frame."""
         from mld_core.constraints import Constraints, Continuation
 
         t_start = time.perf_counter()
@@ -708,8 +709,9 @@ class MLDPipeline:
         starts, residuals = [0], []
         for k, (prompt, seconds) in enumerate(segments[1:], start=1):
             tail = features_to_joints(features[-overlap:])  # the last frames, in their own frame
-            # the pose only (no planted-feet term: that would hold the root back where the legs do not carry it)
-            join = Constraints([Continuation(tail)], steps=0, planted_weight=0.0)
+            # the pose only (no planted-feet term: that would hold the root back where the legs do not carry it);
+            # only the change is kept smooth, so the segment's own motion (a wave's swings) is not damped
+            join = Constraints([Continuation(tail)], steps=0, planted_weight=0.0, smooth_change_only=True)
             out = self(prompt, seconds + overlap / self.config.fps, seed=seed + k, repair=False, step=step,
                        constraints=join, **kwargs)
             residuals += out.residuals[0]
