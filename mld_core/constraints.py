@@ -143,7 +143,8 @@ class Constraints:
     feature_steps: int = 120  # then on the decoded features
     feature_lr: float = 0.05
     smooth_weight: float = 0.1  # mean squared feature acceleration
-    smooth_change_only: bool = False  # ... of the change to the decoded features (their own motion is not damped)
+    smooth_change_only: bool | None = None  # ... of the change to the decoded features, so their own motion is not
+    # damped (None: unless the take loops; a loop's seam needs the features themselves smooth: see smooths_change_only)
     prior_weight: float = 1e-3  # keeps latent and features near the sample: the motion stays the prompt's
     planted_weight: float = 1.0  # planted feet (the sample's contact channels) keep still while the root moves
     planted_toe_height_m: float = 0.05  # ... and so does a toe this near the take's lowest toe (0: the channels only)
@@ -153,6 +154,14 @@ class Constraints:
 
     def __bool__(self) -> bool:
         return bool(self.items)
+
+    def smooths_change_only(self) -> bool:
+        """Whether the feature stage keeps only its change to the decoded features smooth (``smooth_change_only``;
+        by default yes, unless a Loop is among the items: smoothing the features themselves keeps a run cycle's seam
+        within real motion's acceleration, 0.75x against 1.20x its 95th percentile on 4 seeds)."""
+        if self.smooth_change_only is not None:
+            return bool(self.smooth_change_only)
+        return not any(isinstance(item, Loop) for item in self.items)
 
     def latent_slide_weight(self) -> float:
         """The weight of the feet's slide in the latent stage: lower with pose keys, which the slide would resist

@@ -393,7 +393,7 @@ class MLDPipeline:
             opt = torch.optim.Adam([x], lr=constraints.feature_lr)
             for _ in range(constraints.feature_steps):  # 5b. the features, kept smooth and near the decoded ones
                 opt.zero_grad()
-                moved = x - x0 if constraints.smooth_change_only else x
+                moved = x - x0 if constraints.smooths_change_only() else x
                 accel = moved[:, 2:] - 2 * moved[:, 1:-1] + moved[:, :-2]
                 joints = features_to_joints(x * std + mean)
                 loss = (constraints.cost(joints) + constraints.smooth_weight * (accel ** 2).mean()
@@ -709,9 +709,8 @@ class MLDPipeline:
         starts, residuals = [0], []
         for k, (prompt, seconds) in enumerate(segments[1:], start=1):
             tail = features_to_joints(features[-overlap:])  # the last frames, in their own frame
-            # the pose only (no planted-feet term: that would hold the root back where the legs do not carry it);
-            # only the change is kept smooth, so the segment's own motion (a wave's swings) is not damped
-            join = Constraints([Continuation(tail)], steps=0, planted_weight=0.0, smooth_change_only=True)
+            # the pose only (no planted-feet term: that would hold the root back where the legs do not carry it)
+            join = Constraints([Continuation(tail)], steps=0, planted_weight=0.0)
             out = self(prompt, seconds + overlap / self.config.fps, seed=seed + k, repair=False, step=step,
                        constraints=join, **kwargs)
             residuals += out.residuals[0]

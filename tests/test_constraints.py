@@ -209,6 +209,16 @@ def test_a_continuation_smooths_only_its_change_so_the_take_keeps_its_own_motion
     assert kept[True] > 0.95  # ... smoothing only the change keeps it
 
 
+def test_only_a_loop_keeps_smoothing_the_features_themselves_by_default():
+    path = RootPath([0, 10], np.array([[0.0, 0.0], [0.0, 1.0]]))
+    assert Constraints([path]).smooths_change_only()
+    assert Constraints([PoseKeys({5: {"pelvis": [0.0, 0.9, 0.0]}})]).smooths_change_only()
+    assert not Constraints([Loop()]).smooths_change_only()
+    assert not Constraints([path, Loop()]).smooths_change_only()  # a loop on a path: its seam decides
+    assert Constraints([Loop()], smooth_change_only=True).smooths_change_only()  # an explicit choice wins
+    assert not Constraints([path], smooth_change_only=False).smooths_change_only()
+
+
 def test_generate_sequence_file(model, tmp_path, capsys):
     (tmp_path / "s.json").write_text(json.dumps([{"prompt": "a walk", "seconds": 2}, {"prompt": "a wave", "seconds": 2}]))
     assert main(["generate", "--sequence", str(tmp_path / "s.json"), "--model", str(model), "--steps", "2",
