@@ -19,6 +19,7 @@ import torch
 from mld_core.inputs import InputError, check_prompt, finite_number, whole_number
 from mld_core.motion import skeleton as sk
 from mld_core.motion.features import FOOT_CONTACT, features_to_joints
+from mld_core.motion.repair import FOOT_JOINTS
 from mld_core.motion.skeleton import JOINT_NAMES
 
 JOINT_INDEX = {name: i for i, name in enumerate(JOINT_NAMES)}
@@ -187,7 +188,7 @@ class Constraints:
         return out
 
 
-FEET = [7, 10, 8, 11]  # left ankle, left toe (foot), right ankle, right toe: the order of the contact channels
+FEET = list(FOOT_JOINTS)  # left ankle, left toe (foot), right ankle, right toe: the order of the contact channels
 
 
 def planted_feet(features: torch.Tensor, toe_height_m: float = 0.0) -> torch.Tensor:

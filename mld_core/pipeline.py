@@ -391,9 +391,10 @@ class MLDPipeline:
             contacts = planted_feet(x0 * std + mean, constraints.planted_toe_height_m)  # (B, T, 4) feet held still
             x = x0.clone().requires_grad_(True)
             opt = torch.optim.Adam([x], lr=constraints.feature_lr)
+            change_only = constraints.smooths_change_only()
             for _ in range(constraints.feature_steps):  # 5b. the features, kept smooth and near the decoded ones
                 opt.zero_grad()
-                moved = x - x0 if constraints.smooths_change_only() else x
+                moved = x - x0 if change_only else x
                 accel = moved[:, 2:] - 2 * moved[:, 1:-1] + moved[:, :-2]
                 joints = features_to_joints(x * std + mean)
                 loss = (constraints.cost(joints) + constraints.smooth_weight * (accel ** 2).mean()

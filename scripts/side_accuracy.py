@@ -45,6 +45,7 @@ sys.path.insert(0, str(REPO))
 
 from mld_core.eval import physical  # noqa: E402
 from mld_core.eval.quality import foot_skating_ratio  # noqa: E402
+from mld_core.inputs import MAX_SIDE_REDRAWS  # noqa: E402
 from mld_core.motion.features import mirror_text  # noqa: E402
 
 SIDED = ("raise-up-left-hand", "raise-up-right-hand", "raise-up-both-hands", "wave-left-hand", "wave-right-hand",
@@ -505,6 +506,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="draws of a take beyond its first when it misses the side its prompt names (default: the "
                          "model's config side_redraws; 0: every take is its seed's first draw, the model alone)")
     args = ap.parse_args(argv)
+    if args.side_redraws is not None and not 0 <= args.side_redraws <= MAX_SIDE_REDRAWS:
+        ap.error(f"--side-redraws must be between 0 and {MAX_SIDE_REDRAWS}, got {args.side_redraws}")
 
     contents = [c.strip() for c in args.contents.split(",") if c.strip()]
     unknown = [c for c in contents if physical.expected_for(c) is None]

@@ -512,3 +512,13 @@ def test_directed_skating_refuses_a_missing_model_folder_in_one_line(tmp_path, c
     assert script.main(["--model", str(tmp_path / "none"), "--seeds", "1"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: --model") and "not found" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("redraws", ["-1", "9"])
+def test_side_accuracy_refuses_side_redraws_out_of_range_before_any_work(request, tmp_path, capsys, redraws):
+    mod = _load_script(request.config.rootpath)
+    with pytest.raises(SystemExit) as exit_info:
+        mod.main(["--data", str(tmp_path / "absent"), "--side-redraws", redraws])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert f"--side-redraws must be between 0 and 8, got {redraws}" in err and "Traceback" not in err
