@@ -422,7 +422,8 @@ def test_root_weight_scales_only_the_root_channels_and_trains(folder, tmp_path, 
                                (lambda v: VAETrainConfig(clip_start_share=v), 1.5, "clip_start_share must be between"),
                                (lambda v: DenoiserTrainConfig(reworded_captions=v), -1, "reworded_captions must be"),
                                (lambda v: DenoiserTrainConfig(reworded_turns=v), "false", "reworded_turns must be true"),
-                               (lambda v: DenoiserTrainConfig(reworded_turns=v), 1, "reworded_turns must be true")):
+                               (lambda v: DenoiserTrainConfig(reworded_turns=v), 1, "reworded_turns must be true"),
+                               (lambda v: DenoiserTrainConfig(reworded_sides=v), "yes", "reworded_sides must be true")):
         with pytest.raises(ValueError, match=words):
             make(value)
 
@@ -499,6 +500,28 @@ def test_turn_rewording_says_turning_to_a_side_in_other_verbs_and_keeps_the_side
     texts = with_reworded_captions(units, 8, seed=0, turns=True)[0]
     assert any(f" {verb} right." in t for t in texts for verb in TURN_VERBS), texts
     assert with_reworded_captions(units, 8, seed=0)[0] != texts  # the switch changes what trains
+
+
+def test_side_rewording_names_the_side_from_the_body_and_never_in_the_held_out_words():
+    from mld_core.data.captions import reworded
+    from mld_core.training.denoiser import Unit, with_reworded_captions
+
+    rng = np.random.default_rng(0)
+    owners = {"a woman": {"the", "her"}, "she": {"the", "her"}, "the lady": {"the", "her"}, "a man": {"the", "his"},
+              "he": {"the", "his"}, "a guy": {"the", "his"}}
+    for caption in ("a woman walks forward and turns to the left.", "the man walks ahead while drifting to the right."):
+        side = caption.split()[-1]
+        texts = [reworded(caption, rng, sides=True) for _ in range(400)]
+        assert {t.split()[-2] for t in texts} == {"the", "his", "her"} and all(t.endswith(side) for t in texts)
+        for subject, allowed in owners.items():  # the owner agrees with the (reworded) subject
+            said = {t.split()[-2] for t in texts if t.startswith(subject + " ")}
+            assert said and said <= allowed, (subject, said)
+        assert not any("their left" in t or "their right" in t for t in texts)  # "his" -> "their" comes before
+        assert not any(" his " in t or " her " in t for t in (reworded(caption, rng) for _ in range(100)))
+    assert all(" the left " in reworded("a person waves the left hand.", rng, sides=True) for _ in range(50))
+    units = [Unit(features=np.zeros((40, 263), np.float32), label="walk-turn-left",
+                  captions=["someone walks forward and turns to the left."])]
+    assert with_reworded_captions(units, 8, seed=0, sides=True) != with_reworded_captions(units, 8, seed=0)
 
 
 def test_caption_embedding_cache_is_remade_for_another_caption_list(tmp_path):

@@ -532,10 +532,19 @@ TURN_VERBS = ("heads", "curves", "cuts", "bears", "wheels", "pivots", "swings ro
 _TURN_TO_A_SIDE = re.compile(r"\bturns(?= (?:to the |to their )?(?:left|right)\b)")
 
 
-def reworded(caption: str, rng: np.random.Generator, turns: bool = False) -> str:
+# Users name a side from the body's point of view ("turns to his left", "veers off to her right"); the captions only
+# ever say "to the left". Measured on v3.6 (first draws, 32 seeds): "changes direction to the left" 16 of 32 turn left,
+# "to his left" 5; "veers off to the left" 14, "to her left" 1. With sides=True a rewording says "to his / her"
+# before a side, half the time. "to their" stays out: it is a wording of the held-out paraphrases (tested).
+_TO_THE_SIDE = re.compile(r"\bto the (?=(?:left|right)\b)")
+_HER_SUBJECTS = ("a woman", "the woman", "she", "the lady", "a girl", "an old woman")
+_HIS_SUBJECTS = ("a man", "the man", "he", "a guy", "a boy", "an old man")
+
+
+def reworded(caption: str, rng: np.random.Generator, turns: bool = False, sides: bool = False) -> str:
     """A caption in other words: another neutral subject (``NEUTRAL_SUBJECTS``) and, for about half the words that
     have one, a synonym, as users word their prompts; with ``turns``, also other verbs for turning to a side
-    (``TURN_VERBS``)."""
+    (``TURN_VERBS``); with ``sides``, also a side named from the body ("to his left")."""
     text = caption
     for subject in CAPTION_SUBJECTS:
         if text.lower().startswith(subject + " "):
@@ -550,7 +559,22 @@ def reworded(caption: str, rng: np.random.Generator, turns: bool = False) -> str
         if options and rng.random() < 0.5:
             word = options[int(rng.integers(len(options)))] + word[len(core):]
         words.append(word)
-    return " ".join(words)
+    text = " ".join(words)
+    if sides:
+        text = _TO_THE_SIDE.sub(lambda m: _side_owner(text, rng), text)
+    return text
+
+
+def _side_owner(text: str, rng: np.random.Generator) -> str:
+    """ "to the " half the time, else "to his " / "to her " as the subject suggests (either for a neutral one)."""
+    if rng.random() < 0.5:
+        return "to the "
+    lower = text.lower()
+    if lower.startswith(_HER_SUBJECTS):
+        return "to her "
+    if lower.startswith(_HIS_SUBJECTS):
+        return "to his "
+    return ("to his ", "to her ")[int(rng.integers(2))]
 
 
 def _turn_verb(rng: np.random.Generator) -> str:

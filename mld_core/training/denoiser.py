@@ -61,12 +61,14 @@ class DenoiserTrainConfig:
     init: str | None = None  # a model folder to continue from (fine-tuning): its denoiser and latent normalisation
     reworded_captions: int = 0  # extra versions of each caption in other words (subjects, synonyms) to train on
     reworded_turns: bool = False  # rewordings also say "turns" to a side with other verbs (captions.TURN_VERBS)
+    reworded_sides: bool = False  # rewordings also name a side from the body: "to his / her left" (captions.reworded)
     train_modules: list | None = None  # the denoiser's top-level modules to train (e.g. the text-reading ones); None: all
     denoiser: DenoiserConfig = field(default_factory=DenoiserConfig)
 
     def __post_init__(self):
         self.reworded_captions = inputs.int_in_range(self.reworded_captions, "reworded_captions", 0, 20)
         self.reworded_turns = inputs.true_or_false(self.reworded_turns, "reworded_turns")
+        self.reworded_sides = inputs.true_or_false(self.reworded_sides, "reworded_sides")
         self.train_modules = checked_module_names(self.train_modules)
         if isinstance(self.denoiser, dict):
             self.denoiser = DenoiserConfig(**self.denoiser)
@@ -135,15 +137,17 @@ def encode_latents(vae: MotionVAE, units: list[Unit], mean, std, crops: int, min
             "unit": torch.tensor([j[0] for j in jobs])}
 
 
-def with_reworded_captions(units: list, per_caption: int, seed: int, turns: bool = False) -> list[list[str]]:
+def with_reworded_captions(units: list, per_caption: int, seed: int, turns: bool = False,
+                           sides: bool = False) -> list[list[str]]:
     """Each unit's captions, followed by ``per_caption`` rewordings of each (``mld_core.data.captions.reworded``, with
-    other verbs for turning to a side if ``turns``; duplicates dropped): the texts a unit trains on."""
+    other verbs for turning to a side if ``turns``, a side named from the body if ``sides``; duplicates dropped): the
+    texts a unit trains on."""
     rng = np.random.default_rng(seed)
     out = []
     for unit in units:
         texts = list(unit.captions)
         for caption in unit.captions:
-            texts += [reworded(caption, rng, turns=turns) for _ in range(per_caption)]
+            texts += [reworded(caption, rng, turns=turns, sides=sides) for _ in range(per_caption)]
         out.append(list(dict.fromkeys(texts)))
     return out
 
@@ -236,7 +240,8 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     if init is not None:  # the denoiser being continued learned latents normalised this way
         latent_mean, latent_scale = init.latent_mean, init.latent_scale
     z0_all = (mu - latent_mean) * latent_scale  # (N, n, d)
-    texts_of_unit = with_reworded_captions(units, cfg.reworded_captions, cfg.seed, cfg.reworded_turns)
+    texts_of_unit = with_reworded_captions(units, cfg.reworded_captions, cfg.seed, cfg.reworded_turns,
+                                           cfg.reworded_sides)
     captions = sorted({c for texts in texts_of_unit for c in texts})
     caption_index = {c: i for i, c in enumerate(captions)}
     unit_captions = [np.array([caption_index[c] for c in texts]) for texts in texts_of_unit]
