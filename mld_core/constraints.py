@@ -18,7 +18,7 @@ import torch
 
 from mld_core.inputs import InputError, check_prompt, finite_number, whole_number
 from mld_core.motion import skeleton as sk
-from mld_core.motion.features import FOOT_CONTACT, features_to_joints
+from mld_core.motion.features import FOOT_CONTACT, ROOT_LIN_VEL, features_to_joints
 from mld_core.motion.repair import FOOT_JOINTS
 from mld_core.motion.skeleton import JOINT_NAMES
 
@@ -145,7 +145,9 @@ class Constraints:
     feature_lr: float = 0.05
     smooth_weight: float = 0.1  # mean squared feature acceleration
     smooth_change_only: bool | None = None  # ... of the change to the decoded features, so their own motion is not
-    # damped (None: unless the take loops; a loop's seam needs the features themselves smooth: see smooths_change_only)
+    # damped (None: unless the take loops and travels; a run cycle's seam needs the features themselves smooth: see
+    # smooths_change_only)
+    in_place_speed_m_s: float = 0.3  # a looped take whose root moves slower than this stays in place (a wave)
     prior_weight: float = 1e-3  # keeps latent and features near the sample: the motion stays the prompt's
     planted_weight: float = 1.0  # planted feet (the sample's contact channels) keep still while the root moves
     planted_toe_height_m: float = 0.05  # ... and so does a toe this near the take's lowest toe (0: the channels only)
@@ -157,12 +159,22 @@ class Constraints:
         return bool(self.items)
 
     def smooths_change_only(self) -> bool:
-        """Whether the feature stage keeps only its change to the decoded features smooth (``smooth_change_only``;
-        by default yes, unless a Loop is among the items: smoothing the features themselves keeps a run cycle's seam
-        within real motion's acceleration, 0.75x against 1.20x its 95th percentile on 4 seeds)."""
+        """Whether the feature stage keeps only its change to the decoded features smooth, for a take that travels
+        (``smooth_change_only``; by default yes, unless a Loop is among the items: smoothing the features themselves
+        keeps a run cycle's seam within real motion's acceleration, 0.75x against 1.20x its 95th percentile on 4
+        seeds)."""
         if self.smooth_change_only is not None:
             return bool(self.smooth_change_only)
         return not any(isinstance(item, Loop) for item in self.items)
+
+    def change_only_rows(self, root_speed_m_s) -> np.ndarray:
+        """(B,) bool: ``smooths_change_only`` per take, from each take's mean horizontal root speed (m/s). By default
+        a take slower than ``in_place_speed_m_s`` (a looped wave) keeps its change only smooth even in a loop: the
+        features' own smoothness flattened looped waves (2 of 8 seeds waved, against 6)."""
+        speed = np.asarray(root_speed_m_s, np.float64)
+        if self.smooth_change_only is not None or self.smooths_change_only():
+            return np.full(len(speed), self.smooths_change_only())
+        return speed < self.in_place_speed_m_s
 
     def latent_slide_weight(self) -> float:
         """The weight of the feet's slide in the latent stage: lower with pose keys, which the slide would resist
@@ -203,6 +215,13 @@ def planted_feet(features: torch.Tensor, toe_height_m: float = 0.0) -> torch.Ten
         planted = planted.clone()
         planted[..., [1, 3]] |= low
     return planted
+
+
+def root_speed(features: torch.Tensor) -> np.ndarray:
+    """(B,) each take's mean horizontal root speed in m/s; ``features`` (B, T, 263) denormalised, every row of one
+    length."""
+    per_frame = features[..., ROOT_LIN_VEL].detach().float().norm(dim=-1)  # (B, T) metres per frame
+    return (per_frame.mean(dim=1) * sk.FPS).cpu().numpy()
 
 
 def planted_foot_speed(joints: torch.Tensor, contacts: torch.Tensor) -> torch.Tensor:

@@ -26,7 +26,7 @@ from mld_core import inputs
 from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, CheckpointError, ModelConfig, load_config,
                                  load_weights)
 from mld_core.models.denoiser import LatentDenoiser
-from mld_core.constraints import bone_stretch, planted_feet, planted_foot_speed
+from mld_core.constraints import bone_stretch, planted_feet, planted_foot_speed, root_speed
 from mld_core.motion.features import FOOT_CONTACT, features_to_joints
 from mld_core.motion.repair import RepairConfig, lock_feet, repair_features
 from mld_core.models.transformer import native_bf16, packing_available
@@ -391,10 +391,11 @@ class MLDPipeline:
             contacts = planted_feet(x0 * std + mean, constraints.planted_toe_height_m)  # (B, T, 4) feet held still
             x = x0.clone().requires_grad_(True)
             opt = torch.optim.Adam([x], lr=constraints.feature_lr)
-            change_only = constraints.smooths_change_only()
+            change_only = constraints.change_only_rows(root_speed(x0 * std + mean))  # (B,) a take in place: yes
+            origin = x0 * torch.as_tensor(change_only, dtype=x0.dtype, device=x0.device)[:, None, None]  # x0 or 0
             for _ in range(constraints.feature_steps):  # 5b. the features, kept smooth and near the decoded ones
                 opt.zero_grad()
-                moved = x - x0 if change_only else x
+                moved = x - origin  # the change, or the features themselves
                 accel = moved[:, 2:] - 2 * moved[:, 1:-1] + moved[:, :-2]
                 joints = features_to_joints(x * std + mean)
                 loss = (constraints.cost(joints) + constraints.smooth_weight * (accel ** 2).mean()

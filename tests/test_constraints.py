@@ -58,7 +58,10 @@ def test_root_path_and_loop(pipe):
     out = pipe("a person walks", seconds=3, seed=2, num_inference_steps=4, constraints=Constraints([path], **TINY))
     frames, xz = path.dense()
     assert np.linalg.norm(out.joints[0, frames, 0][:, [0, 2]] - xz, axis=-1).mean() < 0.10
-    looped = pipe("a person walks", seconds=3, seed=2, num_inference_steps=4, constraints=Constraints([Loop()], **TINY))
+    # TINY's step of 0.5 overshoots a loop on this model: its residual swings with the float rounding (0.001-0.07
+    # over seeds 2-4), where 0.1 meets it within 0.0004 on each
+    looped = pipe("a person walks", seconds=3, seed=2, num_inference_steps=4,
+                  constraints=Constraints([Loop()], feature_steps=300, feature_lr=0.1))
     assert looped.residuals[0][0][1] < 0.02
     free = pipe("a person walks", seconds=3, seed=2, num_inference_steps=4)
     assert Loop().residual(free.joints[0]) > 0.05  # the free take does not loop by itself
@@ -219,6 +222,24 @@ def test_only_a_loop_keeps_smoothing_the_features_themselves_by_default():
     assert not Constraints([path], smooth_change_only=False).smooths_change_only()
 
 
+def test_a_loop_in_place_keeps_its_own_motion_and_one_that_travels_does_not():
+    import torch
+
+    from mld_core.constraints import root_speed
+    from mld_core.motion.features import ROOT_LIN_VEL
+
+    features = torch.zeros(3, 40, 263)
+    features[0, :, ROOT_LIN_VEL] = torch.tensor([0.0, 0.06])  # 1.2 m/s straight ahead: a walk cycle
+    features[1, :, ROOT_LIN_VEL] = torch.tensor([0.003, 0.004])  # 0.1 m/s: a wave that sways
+    speed = root_speed(features)
+    np.testing.assert_allclose(speed, [1.2, 0.1, 0.0], rtol=1e-6)
+    np.testing.assert_array_equal(Constraints([Loop()]).change_only_rows(speed), [False, True, True])
+    path = RootPath([0, 10], np.array([[0.0, 0.0], [0.0, 1.0]]))
+    assert Constraints([path]).change_only_rows(speed).all()  # no loop: the change only, whatever the speed
+    assert not Constraints([Loop()], smooth_change_only=False).change_only_rows(speed).any()  # an explicit choice
+    assert Constraints([Loop()], smooth_change_only=True).change_only_rows(speed).all()  # wins either way
+
+
 def test_generate_sequence_file(model, tmp_path, capsys):
     (tmp_path / "s.json").write_text(json.dumps([{"prompt": "a walk", "seconds": 2}, {"prompt": "a wave", "seconds": 2}]))
     assert main(["generate", "--sequence", str(tmp_path / "s.json"), "--model", str(model), "--steps", "2",
@@ -290,6 +311,19 @@ def test_stepped_paths_and_loops_keep_their_feet_planted():  # the bundled model
         # toes near the floor held in the feature stage (Constraints.planted_toe_height_m): on v3.6 the run cycle
         # skated 0.128 with the contact channels alone, 0.064 with them (real runs 0.07)
         assert np.mean([foot_skating_ratio(j) for j in out.joints]) <= bound
+
+
+@pytest.mark.slow
+def test_a_looped_wave_still_waves():  # the bundled model
+    from mld_core.eval import physical
+    from mld_core.pipeline import MLDPipeline
+
+    pipe = MLDPipeline.from_pretrained()
+    out = pipe("a person waves the right hand", seconds=3, seed=0, num_variants=8, constraints=Constraints([Loop()]))
+    assert all(met for row in out.residuals for _, _, met in row)
+    # smoothing the features themselves, as a run cycle's seam needs, flattened the wave: 2 of 8 waved on v3.6 (6 of 8
+    # with only the change kept smooth, for takes in place; /work/proto/s31/loop_probe.py)
+    assert sum(physical.passes(j[:n], "wave-right-hand") for j, n in zip(out.joints, out.lengths)) >= 4
 
 
 @pytest.mark.slow
