@@ -535,7 +535,8 @@ _TURN_TO_A_SIDE = re.compile(r"\bturns(?= (?:to the |to their )?(?:left|right)\b
 # Users name a side from the body's point of view ("turns to his left", "veers off to her right"); the captions only
 # ever say "to the left". Measured on v3.6 (first draws, 32 seeds): "changes direction to the left" 16 of 32 turn left,
 # "to his left" 5; "veers off to the left" 14, "to her left" 1. With sides=True a rewording says "to his / her"
-# before a side, half the time. "to their" stays out: it is a wording of the held-out paraphrases (tested).
+# before a side, half the time. "to their" stays out: it is a wording of the held-out paraphrases (tested). A run with
+# it read those no better (docs/evaluation.md, "v47 / v48"): the owner word is not what the model misreads.
 _TO_THE_SIDE = re.compile(r"\bto the (?=(?:left|right)\b)")
 _HER_SUBJECTS = ("a woman", "the woman", "she", "the lady", "a girl", "an old woman")
 _HIS_SUBJECTS = ("a man", "the man", "he", "a guy", "a boy", "an old man")
