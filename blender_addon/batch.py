@@ -62,7 +62,7 @@ def _addon_package():
 _addon_package()  # puts mld_core (the vendored copy or the checkout) on sys.path
 from mld_core import inputs  # noqa: E402
 from mld_core.fileio import OutputSet  # noqa: E402
-from mld_core.take_report import side_report  # noqa: E402
+from mld_core.take_report import seam_lines, side_report  # noqa: E402
 
 
 def script_argv(argv=None) -> list[str]:
@@ -476,6 +476,8 @@ def key_every_line(args, addon, inp: _Inputs, pipe, scene, obj) -> tuple[list, l
             if not met:
                 print(f"warning: job {line.line}: the {kind} constraint is off by {metres * 100:.1f} cm (best effort)",
                       file=sys.stderr)
+        for seam in seam_lines(take.seams, [prompt for prompt, _ in take.segments or []]):
+            print(f"warning: job {line.line}: {seam}", file=sys.stderr)
         record = take.summary()
         if "job" in request.extra:
             record["job"] = request.extra["job"]

@@ -231,6 +231,9 @@ def _run(args, take_report) -> int:
     else:
         out = pipe(prompts, **kwargs)
     _warn_unmet(out)
+    if args.sequence is not None:
+        for line in take_report.seam_lines(out.seams[0], prompts):
+            print(f"warning: {line}", file=sys.stderr)
     out = take_report.keep_best(out, args.variants, args.best)
     if cond == "text" and not args.unconditional and args.sequence is None:  # a sequence's sides are per segment
         for line in take_report.side_lines(out):

@@ -27,6 +27,7 @@ from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, Checkpoi
                                  load_weights)
 from mld_core.models.denoiser import LatentDenoiser
 from mld_core.constraints import bone_stretch, planted_feet, planted_foot_speed, root_speed
+from mld_core.eval.quality import REAL_JERK_P95, seam_jerk
 from mld_core.motion.features import FOOT_CONTACT, features_to_joints
 from mld_core.motion.repair import RepairConfig, lock_feet, repair_features
 from mld_core.models.transformer import native_bf16, packing_available
@@ -69,6 +70,7 @@ class MLDOutput:
     badges: list | None = None  # per row a mld_core.eval.quality.Badges when generated with rank=True
     residuals: list | None = None  # per row [(kind, metres, met)] when generated with constraints
     draws: list | None = None  # per row, which z_T of its seed the take is (0: the first; side redraws: 1, 2, ...)
+    seams: list | None = None  # per row of a sequence [(segment, largest joint jerk m/s^3 at its seam, within real)]
 
     def select(self, rows: Sequence[int]) -> "MLDOutput":
         """These rows, in this order (every per-row field follows them)."""
@@ -79,7 +81,7 @@ class MLDOutput:
 
         return replace(self, features=self.features[rows], joints=self.joints[rows], lengths=self.lengths[rows],
                        prompts=pick(self.prompts), seeds=pick(self.seeds), badges=pick(self.badges),
-                       residuals=pick(self.residuals), draws=pick(self.draws))
+                       residuals=pick(self.residuals), draws=pick(self.draws), seams=pick(self.seams))
 
 
 def _as_list(value, n: int, name: str) -> list:
@@ -695,7 +697,9 @@ class MLDPipeline:
         latent stays the segment prompt's sample, and only the change is kept smooth, so its own motion is not
         damped; the features cross-fade there); the root velocities join, so position and facing carry over and
         each segment moves as its prompt says. Segment k uses seed ``seed + k`` and is stepped and repaired as a
-        free take of its own. Returns one row; ``timings["segments"]`` holds each segment's first frame."""
+        free take of its own. Returns one row; ``timings["segments"]`` holds each segment's first frame, and
+        ``seams`` each seam's largest joint jerk on the joined take against real motion's (``quality.seam_jerk``):
+        that, not the Continuation's residual before the fade, is what the seam looks like."""
         from mld_core.constraints import Constraints, Continuation
 
         t_start = time.perf_counter()
@@ -708,14 +712,13 @@ class MLDPipeline:
         step = kwargs.pop("step", repair)  # each segment's sample, before it is joined
         first = self(segments[0][0], segments[0][1], seed=seed, repair=False, step=step, **kwargs)
         features = first.features[0, : int(first.lengths[0])]  # (T, F)
-        starts, residuals = [0], []
+        starts = [0]
         for k, (prompt, seconds) in enumerate(segments[1:], start=1):
             tail = features_to_joints(features[-overlap:])  # the last frames, in their own frame
             # the pose only (no planted-feet term: that would hold the root back where the legs do not carry it)
             join = Constraints([Continuation(tail)], steps=0, planted_weight=0.0)
             out = self(prompt, seconds + overlap / self.config.fps, seed=seed + k, repair=False, step=step,
                        constraints=join, **kwargs)
-            residuals += out.residuals[0]
             starts.append(len(features) - overlap)
             new = out.features[0, : int(out.lengths[0])]
             w = np.linspace(0.0, 1.0, overlap)[:, None]  # cross-fade the overlap: both are nearly the same frames
@@ -731,9 +734,13 @@ class MLDPipeline:
                 features = lock_feet(features, self.config.repair, spans).astype(features.dtype)
         joints = self.joints_from_features(features[None], [len(features)])
         timings = {"segments": starts, "total_s": time.perf_counter() - t_start}
+        seams = []
+        for k, start in enumerate(starts[1:], start=1):
+            jerk = seam_jerk(joints[0], start, overlap, self.config.fps)
+            seams.append((k, jerk, jerk <= REAL_JERK_P95))
         return MLDOutput(features[None].astype(np.float32), joints, np.array([len(features)]),
                          [" | ".join(p for p, _ in segments)], [seed], self.config.fps, self.model_id, timings,
-                         residuals=[residuals])
+                         seams=[seams])
 
     def repair_rows(self, features: np.ndarray, lengths: list, config: RepairConfig | None = None) -> np.ndarray:
         """Each row's first ``lengths[i]`` frames with the repairs of ``config`` (default: the model's) applied (a

@@ -10,7 +10,7 @@ from typing import Sequence
 
 from mld_core.coverage import Coverage
 from mld_core.eval import named_side
-from mld_core.eval.quality import Badges, format_table, side_badge
+from mld_core.eval.quality import REAL_JERK_P95, Badges, format_table, side_badge
 
 
 class BeyondModel(ValueError):
@@ -89,6 +89,20 @@ def side_lines(out) -> list[str]:
             joint = " is" if level == "note" else ":"  # "take 0 (seed 41) is draw 1 ...", "take 0 (seed 41): it turns"
             lines.append(f"{level}: take {row} (seed {out.seeds[row]}){joint} {text}")
     return lines
+
+
+def seam_lines(seams: Sequence | None, prompts: Sequence[str]) -> list[str]:
+    """One line per seam of a sequence that jerks more than real motion (``MLDOutput.seams``: (segment, largest
+    joint jerk, within real)); ``prompts`` the segments' prompts in order."""
+    return [f'the seam into segment {k + 1} ("{prompts[k]}") jerks {jerk:,.0f} m/s^3, {jerk / REAL_JERK_P95:.1f}x '
+            f"real motion's 95th percentile: check it, or try another seed"
+            for k, jerk, within in seams or [] if not within]
+
+
+def seam_records(seams: Sequence | None) -> list[dict]:
+    """``MLDOutput.seams`` as JSON-able records (batch manifests); segments counted from 1."""
+    return [{"segment": int(k) + 1, "jerk": round(float(jerk), 1), "within_real": bool(within)}
+            for k, jerk, within in seams or []]
 
 
 def take_record(coverage: Coverage | None, badges: Badges | None) -> dict:

@@ -31,7 +31,10 @@ def test_batch_runs_a_job_file(tmp_path):
     assert takes[0]["seed"] == 7 and takes[1]["seed"] == 1 and takes[2]["seed"] == 2  # a job's seed wins
     assert [c["kind"] for c in takes[0]["constraints"]] == ["PoseKeys"]
     assert [c["kind"] for c in takes[1]["constraints"]] == ["RootPath", "Loop"]
-    assert [c["kind"] for c in takes[2]["constraints"]] == ["Continuation"]
+    assert "constraints" not in takes[2]  # a sequence's seam is judged on the joined take, against real motion
+    (seam,) = takes[2]["seams"]
+    assert seam["segment"] == 2 and seam["jerk"] > 950.0 and not seam["within_real"]  # the tiny model jerks
+    assert 'warning: job 3: the seam into segment 2 ("a person bows") jerks' in proc.stderr
     assert takes[2]["frames"] == 80  # 2 s + 2 s, one motion
     # --nla: each take on its own track; the sequence's as one strip per segment, back to back, of one Action
     tracks = run_bpy_script(STRIPS.format(blend=str(out)), tmp_path)
@@ -223,7 +226,7 @@ bpy.ops.mld.sequence_edit(action="ADD")
 bpy.ops.mld.sequence_edit(action="UP")  # the bow first
 out = {{"rows": [(r.prompt, r.seconds) for r in s.sequence]}}
 out["generate"] = sorted(bpy.ops.mld.generate())
-out["frames"], out["actions"] = s.last_frames, s.last_actions
+out["frames"], out["actions"], out["message"] = s.last_frames, s.last_actions, s.last_message
 s.sequence[1].prompt = "!!!"
 try:
     out["bad"] = sorted(bpy.ops.mld.generate())
@@ -240,4 +243,5 @@ def test_panel_sequence_makes_one_take(tmp_path):
     r = run_bpy_script(SEQUENCE.format(repo=str(REPO)), tmp_path, timeout=180, MLD_MODEL_DIR=tiny_model(tmp_path / "t"))
     assert r["rows"] == [["a person bows", 3.0], ["a person walks", 2.0]]
     assert r["generate"] == ["FINISHED"] and r["frames"] == 100 and "," not in r["actions"]  # 3 s + 2 s, one Action
+    assert 'the seam into segment 2 ("a person walks") jerks' in r["message"]  # the tiny model's seam is rough
     assert "Sequence segment 2" in r["bad"] and "Sequence segment 2" in r["error"]

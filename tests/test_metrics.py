@@ -215,3 +215,30 @@ def test_mean_ci_matches_hand_computation():
     assert ci == pytest.approx(1.96 * np.sqrt(1.25) / 2)
     assert ci == pytest.approx(1.0956733, rel=1e-6)
     assert M.mean_ci([5.0]) == (5.0, 0.0)
+
+
+def test_largest_joint_jerk_and_a_seams_window():
+    from mld_core.eval.quality import largest_joint_jerk, seam_jerk
+
+    t = np.arange(20, dtype=np.float64) / 20.0
+    joints = np.zeros((20, 22, 3))
+    joints[:, 3, 0] = t ** 3  # jerk 6 m/s^3 throughout for one joint
+    joints[:, 5, 1] = 0.5 * t ** 3  # 3 m/s^3 for another
+    np.testing.assert_allclose(largest_joint_jerk(joints), np.full(17, 6.0), rtol=1e-9)
+    joints[12, 7, 2] = 0.01  # a 1 cm pop at frame 12: windows 9-12 see it
+    jerk = largest_joint_jerk(joints)
+    assert jerk[9:13].min() > 6.0 and np.allclose(jerk[:9], 6.0) and np.allclose(jerk[13:], 6.0)
+    assert seam_jerk(joints, 12, 1) == jerk[9:15].max()  # from 3 frames before the fade to 2 after it
+    assert seam_jerk(joints, 2, 1) == pytest.approx(6.0)  # a window that ends before the pop
+
+
+def test_only_seams_rougher_than_real_motion_get_a_line():
+    from mld_core.take_report import seam_lines, seam_records
+
+    seams = [(1, 640.0, True), (2, 2559.4, False)]
+    prompts = ["a person walks forward", "a person waves the right hand", "a person bows"]
+    assert seam_lines(seams, prompts) == ['the seam into segment 3 ("a person bows") jerks 2,559 m/s^3, 2.7x real '
+                                          "motion's 95th percentile: check it, or try another seed"]
+    assert seam_lines(None, prompts) == [] and seam_lines(seams[:1], prompts) == []
+    assert seam_records(seams) == [{"segment": 2, "jerk": 640.0, "within_real": True},
+                                   {"segment": 3, "jerk": 2559.4, "within_real": False}]

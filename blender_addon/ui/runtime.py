@@ -112,7 +112,7 @@ def finish_job(job, target: Target | None) -> tuple[str, str]:
     """Apply (or report) one ended job on the main thread; returns (level, message) for a report."""
     import bpy
 
-    from mld_core.take_report import side_report
+    from mld_core.take_report import seam_lines, side_report
 
     from ..scene.key_takes import apply_result
 
@@ -155,6 +155,8 @@ def finish_job(job, target: Target | None) -> tuple[str, str]:
     if first is not None:
         _, side_text = side_report(first.prompt, getattr(first.badges, "side", None), first.draw)
         message += f"; {side_text}" if side_text else ""
+        for seam in seam_lines(first.seams, [prompt for prompt, _ in first.segments or []]):
+            message += f"; {seam}"
     if target.live:
         message = f"Live Preview: {message}"
     record_outcome(scene, message=message, seconds=elapsed, frames=report.frames, actions=report.actions)

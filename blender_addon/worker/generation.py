@@ -42,6 +42,7 @@ class Take:
     badges: object = None  # mld_core.eval.quality.Badges (None: not scored)
     residuals: list | None = None  # [(constraint kind, metres, met)] for a directed take
     segments: list | None = None  # [(prompt, first frame)] of a take made from a prompt sequence
+    seams: list | None = None  # [(segment, largest joint jerk m/s^3, within real motion's)] of a sequence's seams
     draw: int = 0  # which z_T of its seed (0: the first; a later one when the side redraws drew it again)
 
     @property
@@ -84,6 +85,10 @@ class Take:
         if self.residuals:
             prov["constraints"] = [{"kind": k, "residual_cm": round(r * 100, 2), "met": bool(m)}
                                    for k, r, m in self.residuals]
+        if self.seams:
+            from mld_core.take_report import seam_records
+
+            prov["seams"] = seam_records(self.seams)
         return prov
 
 
@@ -167,6 +172,7 @@ def generate(pipe, request: GenerateRequest, callback=None, check_cancel=None) -
             badges=out.badges[row] if getattr(out, "badges", None) is not None else None,
             residuals=out.residuals[row] if getattr(out, "residuals", None) else None,
             segments=list(zip([p for p, _ in sequence], out.timings["segments"])) if sequence else None,
+            seams=out.seams[row] if getattr(out, "seams", None) else None,
             draw=int(out.draws[row]) if getattr(out, "draws", None) else 0,
         )
         take.name = action_name(request.prompt, request.seed, take.variant, request.variants)

@@ -114,6 +114,24 @@ def ground_penetration_cm(joints) -> float:
     return float(max(0.0, -j[:, :, 1].min()) * 100.0)
 
 
+# The 95th percentile of the largest joint jerk per 4-frame window over the first 200 Bandai test clips (m/s^3;
+# scripts/control_table.py, real_jerk_p95): a sequence's seam that jerks more than this is rougher than real motion.
+REAL_JERK_P95 = 950.0
+SEAM_MARGIN_BEFORE, SEAM_MARGIN_AFTER = 3, 2  # frames around a seam's cross-fade that its jerk is judged over
+
+
+def largest_joint_jerk(joints, fps: float = 20.0) -> np.ndarray:
+    """(T-3,) the largest joint's jerk (m/s^3) in each 4-frame window."""
+    return np.linalg.norm(np.diff(_joints(joints), n=3, axis=0), axis=-1).max(-1) * fps ** 3
+
+
+def seam_jerk(joints, start: int, fade: int, fps: float = 20.0) -> float:
+    """The largest joint jerk (m/s^3) of a seam whose cross-fade spans frames [start, start + fade), judged from
+    SEAM_MARGIN_BEFORE frames before it to SEAM_MARGIN_AFTER after it."""
+    jerk = largest_joint_jerk(joints, fps)
+    return float(jerk[max(0, start - SEAM_MARGIN_BEFORE): start + fade + SEAM_MARGIN_AFTER].max())
+
+
 def mean_jerk(joints, fps: float = 20.0) -> float:
     """Mean magnitude of the joints' third derivative (m/s^3) over joints and frames (0 under 4 frames)."""
     j = _joints(joints)
