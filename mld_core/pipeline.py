@@ -393,7 +393,7 @@ class MLDPipeline:
             contacts = planted_feet(x0 * std + mean, constraints.planted_toe_height_m)  # (B, T, 4) feet held still
             x = x0.clone().requires_grad_(True)
             opt = torch.optim.Adam([x], lr=constraints.feature_lr)
-            change_only = constraints.change_only_rows(root_speed(x0 * std + mean))  # (B,) a take in place: yes
+            change_only = constraints.change_only_rows(root_speed(x0 * std + mean))  # (B,) True: the change only
             origin = x0 * torch.as_tensor(change_only, dtype=x0.dtype, device=x0.device)[:, None, None]  # x0 or 0
             for _ in range(constraints.feature_steps):  # 5b. the features, kept smooth and near the decoded ones
                 opt.zero_grad()
