@@ -172,9 +172,10 @@ class Constraints:
         a take slower than ``in_place_speed_m_s`` (a looped wave) keeps its change only smooth even in a loop: the
         features' own smoothness flattened looped waves (2 of 8 seeds waved, against 6)."""
         speed = np.asarray(root_speed_m_s, np.float64)
-        if self.smooth_change_only is not None or self.smooths_change_only():
-            return np.full(len(speed), self.smooths_change_only())
-        return speed < self.in_place_speed_m_s
+        travelling = self.smooths_change_only()
+        if self.smooth_change_only is not None or travelling:  # an explicit choice, or no loop: one for all
+            return np.full(len(speed), travelling)
+        return speed < self.in_place_speed_m_s  # a loop, by default: only a take that travels smooths its features
 
     def latent_slide_weight(self) -> float:
         """The weight of the feet's slide in the latent stage: lower with pose keys, which the slide would resist

@@ -514,6 +514,19 @@ def test_directed_skating_refuses_a_missing_model_folder_in_one_line(tmp_path, c
     assert err.startswith("error: --model") and "not found" in err and "Traceback" not in err
 
 
+def test_directed_skating_counts_a_sequences_seams(tmp_path, request):
+    from mld_core.pipeline import MLDPipeline
+    from mld_core.testing import tiny_model
+
+    spec = importlib.util.spec_from_file_location("directed_skating",
+                                                  request.config.rootpath / "scripts" / "directed_skating.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    pipe = MLDPipeline.from_pretrained(tiny_model(tmp_path / "tiny"))
+    row = script.sequence(pipe, [("a person walks", 2.0), ("a person bows", 2.0)], seeds=2, step=False)
+    assert len(row["skating"]) == 2 and row["met"] == [False, False]  # one seam a take; the tiny model's are rough
+
+
 @pytest.mark.parametrize("redraws", ["-1", "9"])
 def test_side_accuracy_refuses_side_redraws_out_of_range_before_any_work(request, tmp_path, capsys, redraws):
     mod = _load_script(request.config.rootpath)
