@@ -14,6 +14,7 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
+from mld_core.content_anchor import ContentAnchorConfig
 from mld_core.fileio import atomic_write
 from mld_core.inputs import MAX_SIDE_REDRAWS
 from mld_core.models.denoiser import DenoiserConfig
@@ -84,10 +85,15 @@ class ModelConfig:
     repair: RepairConfig = field(default_factory=RepairConfig)  # mld_core.motion.repair, on free 263-d takes
     stepping: SteppingConfig = field(default_factory=SteppingConfig)  # mld_core.stepping: free takes' latents step
     side_redraws: int = 2  # a free take that misses the side its prompt names is drawn again, at most this often
+    content_anchor: ContentAnchorConfig = field(default_factory=ContentAnchorConfig)  # prompts' vectors moved
     draft: DraftConfig | None = None  # a Draft denoiser in draft.safetensors (pipe(..., draft=True))
     provenance: dict = field(default_factory=dict)
 
     def __post_init__(self):
+        if isinstance(self.content_anchor, dict):
+            self.content_anchor = ContentAnchorConfig(**self.content_anchor)
+        elif not isinstance(self.content_anchor, ContentAnchorConfig):
+            raise ValueError(f"content_anchor must be a JSON object, got {self.content_anchor!r}")
         if isinstance(self.repair, dict):
             self.repair = RepairConfig(**self.repair)
         elif not isinstance(self.repair, RepairConfig):
@@ -202,6 +208,7 @@ def check_config(config: ModelConfig) -> None:
     redraws = config.side_redraws
     if isinstance(redraws, bool) or not isinstance(redraws, int) or not 0 <= redraws <= MAX_SIDE_REDRAWS:
         raise ValueError(f"side_redraws must be a whole number in 0..{MAX_SIDE_REDRAWS}, got {redraws!r}")
+    config.content_anchor.check()
     if config.draft is not None:
         _check_draft(config.draft, config.scheduler)
 

@@ -130,6 +130,11 @@ class CoverageIndex:
                                 list(self.known_contents)))
         return out
 
+    def nearest_scores(self, vectors: np.ndarray) -> np.ndarray:
+        """(B,) the cosine of each normalised prompt's unit vector (B, D) to its nearest training caption, in [0, 1]."""
+        sims = np.asarray(vectors, np.float32) @ self._emb32.T  # (B, N)
+        return np.clip(sims.max(axis=1), 0.0, 1.0)
+
     def query(self, prompts: Sequence[str], text_encoder) -> list[Coverage]:
         """Encode the normalised prompts with ``text_encoder`` (the model's own) and compare."""
         prompts = [prompts] if isinstance(prompts, str) else list(prompts)

@@ -20,9 +20,9 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
-from mld_core.coverage import load_for_model, unavailable
+from mld_core import content_anchor, inputs
+from mld_core.coverage import INDEX_NAME, load_for_model, normalise, unavailable
 from mld_core.inputs import InputError
-from mld_core import inputs
 from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, CheckpointError, ModelConfig, load_config,
                                  load_weights)
 from mld_core.models.denoiser import LatentDenoiser
@@ -145,6 +145,7 @@ class MLDPipeline:
         self._text_cache: OrderedDict = OrderedDict()  # prompt -> its TextEmbedding (one row, its own tokens)
         self._draft_text_cache: OrderedDict = OrderedDict()  # the same for the Draft's text encoder
         self.coverage_index = None  # mld_core.coverage.CoverageIndex, from the model folder's coverage_index.npz
+        self.content_anchor = None  # mld_core.content_anchor.ContentAnchor, from content_anchor.safetensors
         self._quality = None  # mld_core.eval.quality.QualityScorer, loaded on first use
         mean, std = config.mean_std
         self.mean, self.std = mean, std
@@ -188,8 +189,16 @@ class MLDPipeline:
         pipe.draft_problem = draft_problem
         try:
             pipe.coverage_index = load_for_model(model_dir)
+            pipe.content_anchor = content_anchor.load_for_model(model_dir)
         except ValueError as exc:
             raise CheckpointError(str(exc)) from None
+        anchor = config.content_anchor
+        if anchor.weight and denoiser is not None and pipe.content_anchor is None:
+            raise CheckpointError(f"{model_dir / 'config.json'}: content_anchor.weight is {anchor.weight} but the "
+                                  f"folder has no {content_anchor.FILE_NAME}")
+        if anchor.weight and anchor.full_below is not None and pipe.coverage_index is None:
+            raise CheckpointError(f"{model_dir / 'config.json'}: content_anchor.full_below needs the folder's "
+                                  f"coverage index ({INDEX_NAME}), which it does not have")
         return pipe
 
     # -- sizes --------------------------------------------------------------------------------------------------
@@ -440,7 +449,7 @@ class MLDPipeline:
         rows = {p: cache[p] for p in prompts if p in cache}
         new = [p for p in dict.fromkeys(prompts) if p not in rows]
         if new:
-            emb = encoder(new)
+            emb = self._anchored(new, encoder(new), encoder)
             for i, p in enumerate(new):
                 n = int(emb.mask[i].sum())
                 rows[p] = TextEmbedding(emb.pooled[i:i + 1], emb.tokens[i:i + 1, :n], emb.mask[i:i + 1, :n])
@@ -450,6 +459,21 @@ class MLDPipeline:
         while len(cache) > self.TEXT_CACHE_SIZE:
             cache.popitem(last=False)
         return TextEmbedding.cat([rows[p] for p in prompts])
+
+    def _anchored(self, prompts: list, emb, encoder):
+        """``emb`` (``encoder``'s embeddings of ``prompts``) with its pooled vectors moved by the content anchor
+        (mld_core.content_anchor), when the model has one and config ``content_anchor.weight`` is above 0. The Draft's
+        text encoder, distilled from the Final's, shares its vector space and so its anchor. Runs on the CPU."""
+        settings = self.config.content_anchor
+        if self.content_anchor is None or settings.weight == 0 or self.content_anchor.dim != emb.pooled.shape[-1]:
+            return emb
+        plain = encoder([normalise(p) or p for p in prompts]).pooled.float().cpu()
+        plain = torch.nn.functional.normalize(plain, dim=-1)  # (B, D) the prompts without side and style words
+        scores = None
+        if settings.full_below is not None:  # from_pretrained made sure the folder has a coverage index
+            scores = torch.from_numpy(self.coverage_index.nearest_scores(plain.numpy()))
+        pooled = self.content_anchor.anchored(emb.pooled.cpu(), plain, settings.strengths(scores))
+        return type(emb)(pooled.to(emb.pooled.device), emb.tokens, emb.mask)
 
     def clear_text_cache(self) -> None:
         """Forget every cached prompt embedding (the next call of a prompt runs its text encoder again)."""

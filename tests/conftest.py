@@ -32,3 +32,14 @@ def shared() -> Path:
     if not SHARED.is_dir():
         pytest.skip(f"needs the shared folder {SHARED} (developer and CI machines only)")
     return SHARED
+
+
+@pytest.fixture(scope="module")
+def minilm():
+    """The real all-MiniLM-L6-v2 sentence encoder (skips where its weights package is not installed)."""
+    from mld_core.models.text_encoder import TextEncoderError, load_text_encoder
+
+    try:
+        return load_text_encoder({"kind": "minilm"})
+    except (TextEncoderError, ImportError) as exc:
+        pytest.skip(f"needs the MiniLM weights package: {exc}")

@@ -128,16 +128,6 @@ def test_normalise_drops_side_and_style_words():
 
 
 @pytest.fixture(scope="module")
-def minilm():
-    from mld_core.models.text_encoder import TextEncoderError, load_text_encoder
-
-    try:
-        return load_text_encoder({"kind": "minilm"})
-    except (TextEncoderError, ImportError) as exc:
-        pytest.skip(f"needs the MiniLM weights package: {exc}")
-
-
-@pytest.fixture(scope="module")
 def bundled_index():
     index = coverage.load_for_model(DEFAULT_MODEL_DIR)
     if index is None:
