@@ -32,6 +32,7 @@ import torch.nn.functional as F
 from mld_core.coverage import normalise
 
 FILE_NAME = "content_anchor.safetensors"
+LOGIT_SCALE = 10.0  # unit vectors have small dot products: the classifier reads 10 x q
 
 
 @dataclass
@@ -56,7 +57,6 @@ class ContentAnchorConfig:
             return float(self.weight)
         ramp = ((1.0 - scores.float()) / (1.0 - self.full_below)).clamp(0.0, 1.0)
         return self.weight * ramp
-LOGIT_SCALE = 10.0  # unit vectors have small dot products: the classifier reads 10 x q
 
 
 def side_free_label(label: str) -> str:
