@@ -18,38 +18,46 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from mld_core import content_anchor  # noqa: E402
-from mld_core.checkpoint import DEFAULT_MODEL_DIR, load_config, save_json  # noqa: E402
+from mld_core import content_anchor, inputs  # noqa: E402
+from mld_core.checkpoint import DEFAULT_MODEL_DIR, CheckpointError, load_config, save_json  # noqa: E402
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, required=True, help="HumanML3D-format folder (texts/, train.txt, actions.json)")
     ap.add_argument("--model", type=Path, default=DEFAULT_MODEL_DIR, help="model folder to write the anchor into")
-    ap.add_argument("--rewordings", type=int, default=4)
+    ap.add_argument("--rewordings", type=int, default=4, help="rewordings of each caption to fit on (0..20)")
     ap.add_argument("--weight", type=float, default=None, help="also set config.json's content_anchor.weight")
     ap.add_argument("--full-below", type=float, default=None,
                     help="with --weight: the coverage score at or below which a prompt gets the whole weight")
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)
+    try:
+        return build(args)
+    except (CheckpointError, ValueError) as exc:  # bad flags, no model or data folder: one line, nothing written
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+def build(args) -> int:
     import torch
 
     from mld_core.models.text_encoder import load_text_encoder
 
-    torch.set_num_threads(args.threads)
-    config = load_config(args.model)
+    rewordings = inputs.int_in_range(args.rewordings, "--rewordings", 0, 20)
+    threads = inputs.check_threads(args.threads, "--threads")
+    if args.full_below is not None and args.weight is None:
+        raise ValueError("--full-below needs --weight")
     settings = content_anchor.ContentAnchorConfig(args.weight, args.full_below) if args.weight is not None else None
-    try:
-        if settings is not None:
-            settings.check()
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    if settings is not None:
+        settings.check()
+    config = load_config(args.model)
+    if threads:
+        torch.set_num_threads(threads)
     t0 = time.perf_counter()
-    texts, labels = content_anchor.training_texts(args.data, args.rewordings)
+    texts, labels = content_anchor.training_texts(args.data, rewordings)
     if not any(labels):
-        print(f"error: {args.data} has no content labels (actions.json): a content anchor needs them", file=sys.stderr)
-        return 2
+        raise ValueError(f"{args.data} has no content labels (actions.json): a content anchor needs them")
     anchor = content_anchor.fit(texts, labels, load_text_encoder(config.text_encoder))
     path = anchor.save(args.model / content_anchor.FILE_NAME)
     if settings is not None:

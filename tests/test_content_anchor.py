@@ -204,6 +204,17 @@ def test_build_script_writes_the_anchor_and_its_settings(tmp_path, capsys):
     assert main(["--data", str(data), "--model", str(model), "--weight", "3"]) == 2
     assert "content_anchor.weight must be a number in 0..2" in capsys.readouterr().err
     assert not (model / content_anchor.FILE_NAME).exists() and (model / "config.json").read_text() == before
+    for bad, message in [(["--full-below", "0.9"], "--full-below needs --weight"),
+                         (["--rewordings", "-1"], "--rewordings must be between 0 and 20"),
+                         (["--weight", "nan"], "content_anchor.weight must be a number"),
+                         (["--weight", "1", "--full-below", "1"], "full_below must be null or a number")]:
+        assert main(["--data", str(data), "--model", str(model)] + bad) == 2
+        assert message in capsys.readouterr().err
+    assert main(["--data", str(tmp_path / "missing"), "--model", str(model)]) == 2
+    assert "has no train.txt" in capsys.readouterr().err
+    assert main(["--data", str(data), "--model", str(tmp_path / "missing")]) == 2
+    assert "model folder not found" in capsys.readouterr().err
+    assert not (model / content_anchor.FILE_NAME).exists() and (model / "config.json").read_text() == before
     unlabelled = _caption_folder(tmp_path / "unlabelled", labelled=False)
     assert main(["--data", str(unlabelled), "--model", str(model)]) == 2
     assert "has no content labels" in capsys.readouterr().err
