@@ -12,7 +12,7 @@ prompt without them, by the mixture of training contents that a linear classifie
 
 ``centroids`` are the unit means of the side-free training captions of each content. The classifier and centroids are
 fitted on a model's training captions and their rewordings (``fit``; ``scripts/build_content_anchor.py``) and kept in
-the model folder as ``content_anchor.safetensors``. Config ``content_anchor`` (:class:`ContentAnchorConfig`) sets the
+the model folder as ``content_anchor.safetensors`` (fp16, like the weights). Config ``content_anchor`` (:class:`ContentAnchorConfig`) sets the
 weight (0: off) and, optionally, how the weight follows the prompt's coverage score (mld_core.coverage: the cosine of
 ``q`` to its nearest training caption): a prompt worded as a training caption (score 1) is left as it is, one whose
 score is ``full_below`` or lower gets the whole weight, linearly in between.
@@ -107,8 +107,8 @@ class ContentAnchor:
         from mld_core.fileio import atomic_write
 
         path = Path(path)
-        tensors = {"weight": self.weight.contiguous(), "bias": self.bias.contiguous(),
-                   "centroids": self.centroids.contiguous()}
+        tensors = {name: getattr(self, name).to(torch.float16).contiguous()  # stored as fp16, computed in fp32
+                   for name in ("weight", "bias", "centroids")}
         atomic_write(path, lambda tmp: save_file(tensors, str(tmp), metadata={"classes": json.dumps(self.classes)}))
         return path
 

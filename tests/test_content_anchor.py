@@ -7,6 +7,7 @@ import json
 import pytest
 import torch
 import torch.nn.functional as F
+from safetensors import safe_open
 
 from mld_core import content_anchor
 from mld_core.checkpoint import CheckpointError, load_config, save_json
@@ -81,8 +82,11 @@ def test_save_load_parity_and_a_corrupt_file(anchor, tmp_path):
     path = anchor.save(tmp_path / content_anchor.FILE_NAME)
     loaded = content_anchor.ContentAnchor.load(path)
     assert loaded.classes == anchor.classes
-    for name in ("weight", "bias", "centroids"):
-        assert torch.equal(getattr(loaded, name), getattr(anchor, name))
+    for name in ("weight", "bias", "centroids"):  # kept as fp16, like the weights; computed in fp32
+        assert getattr(loaded, name).dtype == torch.float32
+        assert torch.equal(getattr(loaded, name), getattr(anchor, name).half().float())
+    with safe_open(str(path), framework="pt") as f:
+        assert {f.get_tensor(k).dtype for k in f.keys()} == {torch.float16}
     path.write_bytes(b"not safetensors")
     with pytest.raises(ValueError, match="cannot read the content anchor"):
         content_anchor.ContentAnchor.load(path)
@@ -223,3 +227,5 @@ def test_build_script_writes_the_anchor_and_its_settings(tmp_path, capsys):
     anchor = content_anchor.load_for_model(model)
     assert anchor.classes == ["bow", "walk", "wave-side-hand"]
     assert load_config(model).content_anchor == content_anchor.ContentAnchorConfig(1.0, 0.9)
+    built = load_config(model).provenance["content_anchor_build"]  # how the file was made, beside the weights' runs
+    assert (built["rewordings"], built["contents"], built["steps"], built["seed"]) == (1, 3, 1500, 0)

@@ -195,6 +195,20 @@ def test_contact_term_charges_a_planted_foot_for_sliding_not_for_lifting(folder)
     assert slide == pytest.approx((np.diff(wobble) ** 2).mean(), rel=0.01)  # the sway's squared speed per frame
 
 
+def _add_content_anchor(model_dir) -> None:
+    """Fit a content anchor on a few captions with the model's own text encoder and switch it on (weight 1)."""
+    from mld_core import content_anchor
+    from mld_core.checkpoint import load_config, save_json
+    from mld_core.models.text_encoder import load_text_encoder
+
+    config = load_config(model_dir)
+    texts = ["a person walks forward", "someone walks ahead", "a person bows", "someone bows deeply"]
+    anchor = content_anchor.fit(texts, ["walk", "walk", "bow", "bow"], load_text_encoder(config.text_encoder), steps=5)
+    anchor.save(model_dir / content_anchor.FILE_NAME)
+    config.content_anchor = content_anchor.ContentAnchorConfig(weight=1.0)
+    save_json(model_dir / "config.json", config.to_dict())
+
+
 def test_draft_distillation_trains_resumes_and_installs(folder, tmp_path):
     import shutil
 
@@ -208,6 +222,7 @@ def test_draft_distillation_trains_resumes_and_installs(folder, tmp_path):
     teacher = tmp_path / "teacher"
     assert main(["train", "denoiser", "--data", str(folder), "--vae", str(tmp_path / "vae"), "--out", str(teacher),
                  "--steps", "20", "--threads", "1", "--config", str(cfg_den), "--lr", "1e-3"]) == 0
+    _add_content_anchor(teacher)  # a teacher with a content anchor: its Draft run folder must load with it
     cfg_draft = tmp_path / "draft.json"
     cfg_draft.write_text(json.dumps({"batch_size": 16, "save_every": 10, "crops_per_clip": 2}))
     run = tmp_path / "draft"
@@ -220,6 +235,7 @@ def test_draft_distillation_trains_resumes_and_installs(folder, tmp_path):
     assert json.loads((run / "log.jsonl").read_text().splitlines()[-1])["step"] == 50
     # the run folder is a model folder with a Draft; installing copies it (fp16) into the teacher's folder
     run_pipe = MLDPipeline.from_pretrained(run)
+    assert run_pipe.content_anchor is not None and run_pipe.config.content_anchor.weight == 1.0
     assert run_pipe.config.draft.denoiser.guidance_input and run_pipe.config.provenance["draft_steps"] == 50
     d = run_pipe.config.draft  # the sampler the shipped Draft uses (docs/draft.md), not LCM's defaults
     assert (d.num_inference_steps, d.teacher_steps, d.fresh_noise, d.teacher_guidance) == (2, 1, 0.0, 1.5)
@@ -236,6 +252,11 @@ def test_draft_distillation_trains_resumes_and_installs(folder, tmp_path):
     assert draft_timesteps(DraftTrainConfig(original_steps=2), LCMScheduler(run_pipe.config.scheduler, 2)) == [501, 1]
     checked = DraftTrainConfig(teacher_steps="1", draft_steps="2", fresh_noise="0.5", batch_size="16")
     assert (checked.teacher_steps, checked.draft_steps, checked.fresh_noise, checked.batch_size) == (1, 2, 0.5, 16)
+    # a new denoiser on the anchored model's VAE: the anchor, built for the old denoiser, is not carried over
+    assert main(["train", "denoiser", "--data", str(folder), "--vae", str(teacher), "--out", str(tmp_path / "den2"),
+                 "--steps", "2", "--threads", "1", "--config", str(cfg_den)]) == 0
+    assert load_config(tmp_path / "den2").content_anchor.weight == 0
+    assert MLDPipeline.from_pretrained(tmp_path / "den2").content_anchor is None
     installed = tmp_path / "installed"
     shutil.copytree(teacher, installed)
     assert main(args[:6] + ["--teacher", str(installed), "--out", str(tmp_path / "draft2"), "--threads", "1",

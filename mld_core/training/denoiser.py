@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from mld_core import inputs
 from mld_core.checkpoint import load_config, load_weights, save_json, save_weights
+from mld_core.content_anchor import ContentAnchorConfig
 from mld_core.data.captions import reworded
 from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser
 from mld_core.models.vae import MotionVAE
@@ -280,6 +281,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     config.latent_mean, config.latent_scale = latent_mean, latent_scale
     config.actions = actions
     config.guidance_scale = cfg.guidance_scale
+    config.content_anchor = ContentAnchorConfig()  # an anchor is built and gated per denoiser (build_content_anchor.py)
     config.provenance = {**base.provenance, "denoiser_training": {k: v for k, v in asdict(cfg).items() if k != "denoiser"}}
     shutil.copyfile(vae_dir / "vae.safetensors", out / "vae.safetensors")
     save_json(out / "train_config.json", {**asdict(cfg), "stage": "denoiser"})

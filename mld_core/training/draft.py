@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mld_core import inputs
+from mld_core import content_anchor, inputs
 from mld_core.checkpoint import DRAFT_TEXT_WEIGHTS, DraftConfig, load_config, load_weights, save_json, save_weights
 from mld_core.inputs import InputError
 from mld_core.models.denoiser import LatentDenoiser
@@ -187,7 +187,8 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
     config.draft = draft
     config.provenance = {**base.provenance, "draft_training": asdict(cfg)}
     if not resume:
-        for name in ("vae.safetensors", "denoiser.safetensors", "coverage_index.npz", "MODEL_CARD.md"):
+        for name in ("vae.safetensors", "denoiser.safetensors", "coverage_index.npz", content_anchor.FILE_NAME,
+                     "MODEL_CARD.md"):
             if (teacher_dir / name).is_file():
                 shutil.copyfile(teacher_dir / name, out / name)
     save_json(out / "train_config.json", {**asdict(cfg), "stage": "draft"})
