@@ -12,10 +12,10 @@ prompt without them, by the mixture of training contents that a linear classifie
 
 ``centroids`` are the unit means of the side-free training captions of each content. The classifier and centroids are
 fitted on a model's training captions and their rewordings (``fit``; ``scripts/build_content_anchor.py``) and kept in
-the model folder as ``content_anchor.safetensors`` (fp16, like the weights). Config ``content_anchor`` (:class:`ContentAnchorConfig`) sets the
-weight (0: off) and, optionally, how the weight follows the prompt's coverage score (mld_core.coverage: the cosine of
-``q`` to its nearest training caption): a prompt worded as a training caption (score 1) is left as it is, one whose
-score is ``full_below`` or lower gets the whole weight, linearly in between.
+the model folder as ``content_anchor.safetensors`` (fp16, like the weights). Config ``content_anchor``
+(:class:`ContentAnchorConfig`) sets the weight (0: off) and, optionally, how the weight follows the prompt's coverage
+score (mld_core.coverage: the cosine of ``q`` to its nearest training caption): a prompt worded as a training caption
+(score 1) is left as it is, one whose score is ``full_below`` or lower gets the whole weight, linearly in between.
 """
 
 from __future__ import annotations

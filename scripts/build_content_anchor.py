@@ -5,8 +5,7 @@
 Encodes the train split's captions and 4 rewordings of each (side and style words removed) with the model's own text
 encoder, fits the linear content classifier and the centroids, writes MODEL/content_anchor.safetensors (fp16) and
 records how in config.json's provenance (``content_anchor_build``); with --weight (and --full-below), also sets
-config.json's ``content_anchor`` (weight 0: off). About 1.5 minutes on two
-cores for the Bandai data.
+config.json's ``content_anchor`` (weight 0: off). About 1.5 minutes on two cores for the Bandai data.
 """
 
 from __future__ import annotations
