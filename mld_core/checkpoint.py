@@ -14,6 +14,7 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
+from mld_core import side_contrast
 from mld_core.content_anchor import ContentAnchorConfig
 from mld_core.fileio import atomic_write
 from mld_core.inputs import MAX_SIDE_REDRAWS
@@ -86,6 +87,7 @@ class ModelConfig:
     stepping: SteppingConfig = field(default_factory=SteppingConfig)  # mld_core.stepping: free takes' latents step
     side_redraws: int = 2  # a free take that misses the side its prompt names is drawn again, at most this often
     content_anchor: ContentAnchorConfig = field(default_factory=ContentAnchorConfig)  # prompts' vectors moved
+    side_contrast: float = 0.0  # a sided prompt's vector pushed away from its mirrored wording's (mld_core.side_contrast)
     draft: DraftConfig | None = None  # a Draft denoiser in draft.safetensors (pipe(..., draft=True))
     provenance: dict = field(default_factory=dict)
 
@@ -209,6 +211,7 @@ def check_config(config: ModelConfig) -> None:
     if isinstance(redraws, bool) or not isinstance(redraws, int) or not 0 <= redraws <= MAX_SIDE_REDRAWS:
         raise ValueError(f"side_redraws must be a whole number in 0..{MAX_SIDE_REDRAWS}, got {redraws!r}")
     config.content_anchor.check()
+    side_contrast.check_weight(config.side_contrast)
     if config.draft is not None:
         _check_draft(config.draft, config.scheduler)
 

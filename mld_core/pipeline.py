@@ -20,7 +20,7 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
-from mld_core import content_anchor, inputs
+from mld_core import content_anchor, inputs, side_contrast
 from mld_core.coverage import INDEX_NAME, load_for_model, normalise, unavailable
 from mld_core.inputs import InputError
 from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, CheckpointError, ModelConfig, load_config,
@@ -28,7 +28,7 @@ from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, Checkpoi
 from mld_core.models.denoiser import LatentDenoiser
 from mld_core.constraints import bone_stretch, planted_feet, planted_foot_speed, root_speed
 from mld_core.eval.quality import REAL_JERK_P95, seam_jerk
-from mld_core.motion.features import FOOT_CONTACT, features_to_joints
+from mld_core.motion.features import FOOT_CONTACT, features_to_joints, mirror_text
 from mld_core.motion.repair import RepairConfig, lock_feet, repair_features
 from mld_core.models.transformer import native_bf16, packing_available
 from mld_core.models.vae import MotionVAE
@@ -449,7 +449,7 @@ class MLDPipeline:
         rows = {p: cache[p] for p in prompts if p in cache}
         new = [p for p in dict.fromkeys(prompts) if p not in rows]
         if new:
-            emb = self._anchored(new, encoder(new), encoder)
+            emb = self._side_contrasted(new, self._anchored(new, encoder(new), encoder), encoder)
             for i, p in enumerate(new):
                 n = int(emb.mask[i].sum())
                 rows[p] = TextEmbedding(emb.pooled[i:i + 1], emb.tokens[i:i + 1, :n], emb.mask[i:i + 1, :n])
@@ -474,6 +474,21 @@ class MLDPipeline:
             scores = torch.from_numpy(self.coverage_index.nearest_scores(plain.numpy()))
         pooled = self.content_anchor.anchored(emb.pooled.cpu(), plain, settings.strengths(scores))
         return type(emb)(pooled.to(emb.pooled.device), emb.tokens, emb.mask)
+
+    def _side_contrasted(self, prompts: list, emb, encoder):
+        """``emb`` (``encoder``'s anchored embeddings of ``prompts``) with the pooled vector of each prompt that names
+        a side pushed away from its mirrored wording's (mld_core.side_contrast), when config ``side_contrast`` is
+        above 0."""
+        weight = self.config.side_contrast
+        mirrored = [mirror_text(p) for p in prompts]
+        rows = [i for i, (p, m) in enumerate(zip(prompts, mirrored)) if p != m]
+        if not weight or not rows:
+            return emb
+        others = [mirrored[i] for i in rows]
+        mirrored_pooled = self._anchored(others, encoder(others), encoder).pooled  # (R, D)
+        pooled = emb.pooled.clone()
+        pooled[rows] = side_contrast.contrasted(emb.pooled[rows], mirrored_pooled, weight)
+        return type(emb)(pooled, emb.tokens, emb.mask)
 
     def clear_text_cache(self) -> None:
         """Forget every cached prompt embedding (the next call of a prompt runs its text encoder again)."""
