@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mld_core.checkpoint import DEFAULT_MODEL_DIR
+from mld_core.checkpoint import DEFAULT_MODEL_DIR, load_config, save_json
 from mld_core.cli import main
 from mld_core.inputs import parse_prompt_lines, read_prompt_file
 from mld_core.motion.bvh import read_bvh
@@ -141,10 +141,20 @@ def test_generate_with_the_bundled_default_model(tmp_path):
 
 @pytest.mark.skipif(not (DEFAULT_MODEL_DIR / "config.json").is_file(), reason="the bundled default model is not built")
 def test_a_take_that_turns_the_other_way_is_drawn_again_and_says_so(tmp_path, capsys):
-    """Seed 41 of this caption turns left on the default model (v3.6; v3.7 the same: its content anchor leaves a
-    training caption as it is); its second draw turns right, as asked."""
+    """Seed 41 of this caption turns left on the default model without its side contrast (v3.6 and v3.7 did); its
+    second draw turns right, as asked. With the side contrast (v3.8's default) its first draw turns right."""
+    import shutil
+
     prompt = "the person walks forward and turns to the right, with youthful energy."
     argv = ["generate", prompt, "--seconds", "6.6", "--seed", "41", "--threads", "2"]
+    assert main(argv + ["--side-redraws", "0", "--out", str(tmp_path / "contrasted.npz")]) == 0
+    assert "warning" not in capsys.readouterr().err  # the bundled model: the side contrast turns it right
+    plain = shutil.copytree(DEFAULT_MODEL_DIR, tmp_path / "no_contrast")
+    config = load_config(plain)
+    assert config.side_contrast > 0
+    config.side_contrast = 0.0
+    save_json(plain / "config.json", config.to_dict())
+    argv += ["--model", str(plain)]
     assert main(argv + ["--side-redraws", "0", "--out", str(tmp_path / "first.npz")]) == 0
     assert "warning: take 0 (seed 41): it turns left, not right as the prompt says" in capsys.readouterr().err
     assert main(argv + ["--out", str(tmp_path / "redrawn.npz")]) == 0
