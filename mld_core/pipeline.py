@@ -480,9 +480,11 @@ class MLDPipeline:
         a side pushed away from its mirrored wording's (mld_core.side_contrast), when config ``side_contrast`` is
         above 0."""
         weight = self.config.side_contrast
+        if not weight:
+            return emb
         mirrored = [mirror_text(p) for p in prompts]
         rows = [i for i, (p, m) in enumerate(zip(prompts, mirrored)) if p != m]
-        if not weight or not rows:
+        if not rows:
             return emb
         others = [mirrored[i] for i in rows]
         mirrored_pooled = self._anchored(others, encoder(others), encoder).pooled  # (R, D)
