@@ -109,6 +109,25 @@ def test_up_axis_units_and_tpose(fixtures):
     assert bl.leading_tpose_frames(joints, 30) == 0
 
 
+def test_a_rest_frame_before_the_motion_is_trimmed_and_the_take_stands_on_the_floor(fixtures, tmp_path):
+    """A first frame in another place and pose (the skeleton's rest pose) jumps into frame 1 faster than a body can move:
+    it is dropped, and the floor is the take's own."""
+    text = (fixtures / "bandai" / f"{WALK}.bvh").read_text()
+    head, motion = text.split("MOTION")
+    lines = motion.strip().splitlines()
+    first = lines[2].split()
+    rest = " ".join([first[0], str(float(first[1]) + 300.0), first[2]] + ["0"] * (len(first) - 3))  # 3 m up
+    frames = int(lines[0].split()[1])
+    src = tmp_path / "lib"
+    src.mkdir()
+    (src / "walk.bvh").write_text(head + "MOTION\n" + f"Frames: {frames + 1}\n" + lines[1] + "\n" + rest + "\n"
+                                  + "\n".join(lines[2:]) + "\n")
+    summary = bl.prepare_bvh(src, tmp_path / "out", bl.LibraryOptions(caption_template="a person walks", up="y"))
+    assert summary["leading_frames_trimmed"] == {"walk.bvh": 1}
+    feet = np.load(next((tmp_path / "out" / "new_joints").glob("walk*.npy")))[:, [7, 8, 10, 11], 1].min(axis=1)
+    assert np.median(feet) < 0.05  # standing on its own floor, not 3 m below a stray frame's
+
+
 def test_segments_are_at_most_the_model_length():
     cap = bl.Caption("x")
     assert bl.segments(500, cap, 20, 2.0, 9.8) == [(0, 167), (167, 333), (333, 500)]
@@ -151,7 +170,14 @@ def test_the_cmu_subsets_prepare(shared, tmp_path):
     summary = bl.prepare_bvh(tmp_path / "cmu-subsets", tmp_path / "out",
                              bl.LibraryOptions(caption_template="a person moves {folder}"))
     assert summary["files"] == 163 and summary["mapped"] >= 145
-    assert all("shorter than" in why for why in summary["skipped"].values())
+    assert all("shorter than" in why or "implausible" in why for why in summary["skipped"].values())
+    # Many clips start with a rest or calibration frame that jumps into the motion: trimmed and counted per file.
+    assert len(summary["leading_frames_trimmed"]) >= 50
+    # Nothing implausible is written (the floor from a stray frame once left whole takes floating above it).
+    from mld_core.data.take_checks import implausible
+
+    for cid in (tmp_path / "out" / "all.txt").read_text().split():
+        assert implausible(np.load(tmp_path / "out" / "new_joints" / f"{cid}.npy"), 20) is None, cid
 
 
 def _blender_take(fixtures, name="Walk_Tired.001", drop=("spine2", "left_collar", "right_collar")):

@@ -42,6 +42,7 @@ import numpy as np
 from ..inputs import InputError, check_output_folder
 from ..motion.bvh import BVHError, parse_bvh
 from . import captions as cap
+from .take_checks import implausible
 
 FORMAT_VERSION = 1
 MANIFEST = ".mld_prepare.json"
@@ -276,6 +277,9 @@ def process_clip(root: str, stem: str, data: bytes, mirror: bool = True) -> dict
         return {"id": stem, "error": str(exc)}
     if len(joints) < MIN_FRAMES + 1:
         return {"id": stem, "error": f"too short ({len(joints)} frames at {TARGET_FPS} fps)"}
+    why = implausible(joints, TARGET_FPS)
+    if why:
+        return {"id": stem, "error": f"implausible: {why}"}
     texts = cap.captions_for(name.content, name.style, stem)
     out = {"id": stem, "content": name.content, "style": name.style, "dataset": name.dataset,
            "captions": texts}

@@ -3,8 +3,10 @@
 Per file: parse; map the skeleton onto the 22 joints with the add-on's bone-map detection (presets, then names and
 hierarchy; ``--bone-map`` overrides); joints the skeleton lacks between mapped ones are interpolated (spine, neck,
 collars) and a missing toe comes from the ankle's End Site; detect the up axis (Y or Z) and the units (from the leg
-length); drop leading T-pose frames; resample to 20 fps; cut each caption's span into training segments of at most
-9.8 s; mirror (captions' side words swapped). A file that cannot be used is skipped with its reason in
+length); drop leading T-pose frames and leading frames that jump impossibly into the next (a rest or calibration
+pose, ``mld_core.data.take_checks``); resample to 20 fps; cut each caption's span into training segments of at most
+9.8 s; write only segments that pass the plausibility check (body height, feet reaching the floor, joint speeds);
+mirror (captions' side words swapped). A file or segment that cannot be used is skipped with its reason in
 ``prepare_report.json`` and a summary line, never silently. The output layout is ``data prepare bandai``'s.
 """
 
@@ -24,6 +26,7 @@ import numpy as np
 from mld_core.data import captions as cap
 from mld_core.data.bandai import (FORMAT_VERSION, MANIFEST, TARGET_FPS, PrepareError, _write_clip, assign_splits,
                                   check_out, resample_joints, source_fps, swap_into_place, written_files)
+from mld_core.data.take_checks import implausible, leading_jump_frames
 from mld_core.motion.bvh import BVHError, read_bvh
 from mld_core.motion.skeleton import JOINT_NAMES
 
@@ -272,9 +275,11 @@ def library_joints(bvh, bone_map, options: LibraryOptions) -> tuple[np.ndarray, 
         units, scale = detect_units(joints)
     joints = joints * scale
     fps = source_fps(bvh.frame_time)
-    trimmed = leading_tpose_frames(joints, int(fps))
-    info = {"units": units, "up": up, "fps": round(fps, 3), "tpose_frames_trimmed": trimmed}
-    return resample_joints(joints[trimmed:], fps, TARGET_FPS), info
+    tpose = leading_tpose_frames(joints, int(fps))
+    jumps = leading_jump_frames(joints[tpose:], fps)
+    info = {"units": units, "up": up, "fps": round(fps, 3), "tpose_frames_trimmed": tpose,
+            "leading_frames_trimmed": tpose + jumps}
+    return resample_joints(joints[tpose + jumps:], fps, TARGET_FPS), info
 
 
 def process_file(path: Path, src: Path, options: LibraryOptions, table: dict | None, root: Path,
@@ -306,12 +311,18 @@ def process_file(path: Path, src: Path, options: LibraryOptions, table: dict | N
     try:
         for seg in entry["segments"]:
             piece = joints[seg["start"]:seg["end"] + 1]
+            why = implausible(piece, TARGET_FPS)
+            if why:
+                seg["error"] = why
+                continue
             seg["frames"] = _write_clip(root, seg["id"], piece, [cap.caption_line(t) for t in seg["captions"]])
             if options.mirror:
                 _write_clip(root, "M" + seg["id"], F.mirror_joints(piece),
                             [cap.caption_line(F.mirror_text(t)) for t in seg["captions"]])
     except ValueError as exc:
         return {**entry, "error": f"feature extraction failed: {exc}"}
+    if all("error" in seg for seg in entry["segments"]):
+        return {**entry, "error": f"implausible: {entry['segments'][0]['error']}"}
     return entry
 
 
@@ -368,7 +379,7 @@ def prepare_bvh(src, out, options: LibraryOptions | None = None) -> dict:
         by_file = assign_splits({f: (folder, "") for f, folder in folder_of.items()})
         splits, content = {"train": [], "val": [], "test": []}, {}
         for r in ok:  # a file's segments (and mirrors) share its split and are labelled with its folder
-            for s in r["segments"]:
+            for s in _written(r):
                 ids = [s["id"]] + (["M" + s["id"]] if options.mirror else [])
                 splits[by_file[r["file"]]] += ids
                 content.update(dict.fromkeys(ids, folder_of[r["file"]]))
@@ -384,14 +395,17 @@ def prepare_bvh(src, out, options: LibraryOptions | None = None) -> dict:
         np.save(tmp / "Std.npy", np.asarray(std, np.float32))
         actions = {"classes": sorted(set(content.values())), "clips": content, "styles": {i: "" for i in all_ids}}
         (tmp / "actions.json").write_text(json.dumps(actions, indent=1) + "\n", encoding="utf-8")
-        segs = [s for r in ok for s in r["segments"]]
+        segs = [s for r in ok for s in _written(r)]
         frames = int(sum(s["frames"] for s in segs)) * (2 if options.mirror else 1)
         skipped = {r["file"]: r["error"] for r in report if "error" in r}
         summary = {"written_by": "mld_core data prepare", "dataset": "bvh", "format_version": FORMAT_VERSION,
                    "fps": TARGET_FPS, "files": len(files), "mapped": len(ok), "clips": len(segs),
                    "mirrored": len(segs) if options.mirror else 0, "frames": frames,
                    "splits": {k: len(v) for k, v in splits.items()}, "classes": actions["classes"],
-                   "skipped": skipped}
+                   "skipped": skipped,
+                   "rejected_segments": {s["id"]: s["error"] for r in ok for s in r["segments"] if "error" in s},
+                   "leading_frames_trimmed": {r["file"]: r.get("leading_frames_trimmed", 0) for r in report
+                                              if r.get("leading_frames_trimmed")}}
         (tmp / REPORT).write_text(json.dumps({"summary": summary, "files": report}, indent=1) + "\n",
                                   encoding="utf-8")
         (tmp / "README.md").write_text(_readme(src, summary), encoding="utf-8")
@@ -404,6 +418,11 @@ def prepare_bvh(src, out, options: LibraryOptions | None = None) -> dict:
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _written(entry: dict) -> list[dict]:
+    """A file's segments that were written (not rejected as implausible)."""
+    return [s for s in entry["segments"] if "error" not in s]
 
 
 def _readme(src: Path, s: dict) -> str:
