@@ -134,7 +134,8 @@ def bow_motion(pose: np.ndarray, degrees: float = 60.0, back_up: bool = True) ->
 def test_standing_still_shows_nothing(rest):
     v = P.verdicts(still(rest))
     assert v == {"raised": "none", "waving": "none", "turn": "none", "locomotion": "stand", "drift": "none",
-                 "bow": False, "kick": "none", "jump": False}
+                 "bow": False, "kick": "none", "jump": False, "get_low": False, "on_ground": False, "crawl": False,
+                 "reach_floor": False, "inverted": False, "stand_up": False, "climb": False, "throw": False}
 
 
 def test_raised_right_hand_and_its_mirror(rest):
@@ -535,3 +536,89 @@ def test_side_accuracy_refuses_side_redraws_out_of_range_before_any_work(request
     assert exit_info.value.code == 2
     err = capsys.readouterr().err
     assert f"--side-redraws must be between 0 and 8, got {redraws}" in err and "Traceback" not in err
+
+
+# ---- the CMU verbs ---------------------------------------------------------------------------------------------
+
+
+def lowered(pose: np.ndarray, drop: np.ndarray, joints=None) -> np.ndarray:
+    """The pose with ``joints`` (default: all but the feet) lowered by drop[t] metres, the feet kept on the floor."""
+    keep = {7, 8, 10, 11}
+    moved = [j for j in range(22) if j not in keep] if joints is None else list(joints)
+    out = still(pose, len(drop) / FPS)
+    out[:, moved, 1] -= drop[:, None]
+    return out
+
+
+def test_sitting_down_gets_low_and_standing_up_after_it_counts(rest):
+    pelvis = rest[0, 1] - rest[:, 1].min()  # about 0.9 m above the floor
+    down = 0.3 * ramp(4 * FPS, (0.5, 1.0), (2.5, 3.0))  # sits 0.3 m lower for 1.5 s, then back up
+    sit = lowered(rest, down)
+    assert P.get_low(sit).verdict is True and P.get_low(sit).value == pytest.approx(pelvis - 0.3, abs=0.01)
+    assert P.stand_up(sit).verdict is True and P.shows(sit, "stand_up") and P.shows(sit, "get_low")
+    assert P.on_ground(sit).verdict is False  # sitting on a chair is not on the ground
+    stays = lowered(rest, 0.3 * ramp(4 * FPS, (0.5, 1.0)))
+    assert P.get_low(stays).verdict is True and P.stand_up(stays).verdict is False  # never comes back up
+    crouch_briefly = lowered(rest, 0.3 * ramp(4 * FPS, (1.0, 1.05), (1.1, 1.15)))
+    assert P.get_low(crouch_briefly).verdict is False  # down for a tenth of a second only
+
+
+def test_lying_on_the_ground_and_reaching_the_floor(rest):
+    lying = still(rest)
+    lying[:, :, 1] = rest[:, 1].min() + 0.1 * (rest[:, 1] - rest[:, 1].min()) / 1.7  # everything within 10 cm
+    assert P.on_ground(lying).verdict is True and P.get_low(lying).verdict is True
+    assert P.reach_floor(lying).verdict is False  # hands low, but the pelvis is down too: not a pick-up
+    reach = still(rest)
+    reach[40:44, 21] = rest[[11]] + np.array([0.0, 0.05, 0.3])  # the right wrist at the floor for 0.2 s
+    assert P.reach_floor(reach).verdict is True and P.shows(reach, "reach_floor")
+    assert P.reach_floor(mirror_joints(reach)).verdict is True
+
+
+def test_handstand_is_inverted(rest):
+    flipped = still(rest)
+    top = rest[:, 1].max()
+    flipped[30:50, :, 1] = top - (rest[:, 1] - rest[:, 1].min())  # upside down for a second
+    assert P.inverted(flipped).verdict is True and P.shows(flipped, "inverted")
+    assert P.inverted(still(rest)).verdict is False
+
+
+def test_crawl_needs_all_fours_and_travel(rest):
+    floor = rest[:, 1].min()
+    fours = still(rest)
+    fours[:, :, 1] = floor + 0.45 * (rest[:, 1] - floor)  # head about 0.7 m, pelvis 0.4 m, wrists near the floor
+    fours[:, [20, 21], 1] = floor + 0.05
+    moving = fours + (np.arange(len(fours)) / FPS * 0.4)[:, None, None] * np.array([0.0, 0.0, 1.0])
+    assert P.crawl(moving).verdict is True and P.crawl(moving).detail["travel_m"] > 1.0
+    assert P.crawl(fours).verdict is False  # on all fours without moving
+
+
+def test_climbing_holds_the_feet_up_and_a_jump_is_brief(rest):
+    climb = still(rest)
+    climb[40:, :, 1] += 0.4  # up onto something 40 cm high for 2 s
+    assert P.climb(climb).verdict is True and P.shows(climb, "climb")
+    assert P.jump(climb).verdict is False  # standing on a platform is no flight
+    hop = still(rest)
+    hop[40:46, :, 1] += 0.3  # 0.3 s in the air
+    assert P.jump(hop).verdict is True and P.climb(hop).verdict is False
+
+
+def test_throw_is_a_fast_forward_hand(rest):
+    throw = still(rest)
+    t = np.arange(6)
+    throw[40:46, 21] = rest[17] + np.array([0.0, 0.0, -0.4]) + t[:, None] * np.array([0.0, 0.0, 0.25])  # 5 m/s
+    assert P.throw(throw).verdict is True and P.throw(throw).value == pytest.approx(5.0, abs=0.01)
+    slow = still(rest)
+    slow[40:46, 21] = rest[17] + np.array([0.0, 0.0, -0.4]) + t[:, None] * np.array([0.0, 0.0, 0.05])
+    assert P.throw(slow).verdict is False
+    back = still(rest)
+    back[40:46, 21] = rest[17] - t[:, None] * np.array([0.0, 0.0, 0.25])  # flung backwards
+    assert P.throw(back).verdict is False
+
+
+def test_shows_knows_its_verbs(rest):
+    from mld_core.data.verbs import VERBS
+
+    assert set(VERBS) <= set(P.SHOWN_VERBS)
+    assert not any(P.shows(still(rest), v) for v in VERBS)
+    with pytest.raises(ValueError, match="no physical check for the verb"):
+        P.shows(still(rest), "juggle")

@@ -45,6 +45,22 @@ def register(groups) -> None:
     b.add_argument("--up", choices=("y", "z"), default=None, help="the files' up axis (default: detect)")
     b.add_argument("--no-mirror", action="store_true", help="do not add the mirrored M<id> copies")
     b.set_defaults(func=_run_bvh)
+    c = datasets.add_parser(
+        "cmu-joints",
+        help="the whole CMU motion capture database as joint positions (cmu-mocap-joints.tar.xz)",
+        description="Read the CMU joints archive (streamed) or its extracted folder: map the 20 joints onto the 22, "
+        "convert to metres, drop leading frames that jump impossibly, resample to 20 fps, cut trials into windows of "
+        "at most 9.8 s captioned from KIT sentences and CMU's descriptions (long trials that list several actions: "
+        "per window, the actions a physical detector finds), check each window's plausibility, mirror, split by "
+        "subject, and write a HumanML3D-format folder. Skipped trials and rejected windows are listed with their "
+        "reason in prepare_report.json; uncaptioned windows in uncaptioned.txt.",
+    )
+    c.add_argument("src", metavar="SRC", help="cmu-mocap-joints.tar.xz or its extracted folder")
+    c.add_argument("--out", required=True, metavar="DIR", help="output folder (new, empty, or a previous output)")
+    c.add_argument("--no-mirror", action="store_true", help="do not add the mirrored M<id> copies")
+    c.add_argument("--limit", type=int, default=None, help="only the first N trials (quick trials)")
+    c.add_argument("--quiet", action="store_true", help="no progress bar")
+    c.set_defaults(func=_run_cmu_joints)
     prepare.set_defaults(func=lambda args: _missing_dataset(prepare))
     m = groups["data"].add_parser("merge", help="several HumanML3D-format folders as one (splits kept, one Mean/Std)",
                                   description="Merge HumanML3D-format folders: splits kept, ids prefixed with their "
@@ -86,6 +102,27 @@ def _run_bvh(args) -> int:
     print(f"wrote {s['out']}: {s['mapped']} of {s['files']} files mapped ({len(s['skipped'])} skipped, reasons in "
           f"prepare_report.json), {s['clips']} segments + {s['mirrored']} mirrored, {s['frames']} frames; train "
           f"{sp['train']}, val {sp['val']}, test {sp['test']}; {time.perf_counter() - start:.1f} s")
+    return 0
+
+
+def _run_cmu_joints(args) -> int:
+    from ..cli import UsageError
+    from .bandai import PrepareError
+    from .cmu_joints import prepare_cmu_joints
+
+    if args.limit is not None and args.limit < 1:
+        raise UsageError("--limit must be at least 1")
+    start = time.perf_counter()
+    try:
+        s = prepare_cmu_joints(args.src, args.out, mirror=not args.no_mirror, limit=args.limit,
+                               progress=not args.quiet)
+    except PrepareError as exc:
+        raise UsageError(str(exc)) from None
+    sp = s["splits"]
+    print(f"wrote {s['out']}: {s['prepared']} of {s['trials']} trials ({len(s['skipped'])} skipped, reasons in "
+          f"prepare_report.json), {s['windows']} windows + {s['mirrored']} mirrored, {s['hours']} h; "
+          f"{s['uncaptioned']} uncaptioned; train {sp['train']}, val {sp['val']}, test {sp['test']}; "
+          f"{time.perf_counter() - start:.1f} s")
     return 0
 
 

@@ -41,6 +41,17 @@ __all__ = [
     "drift",
     "bow",
     "kick",
+    "jump",
+    "get_low",
+    "on_ground",
+    "crawl",
+    "reach_floor",
+    "inverted",
+    "stand_up",
+    "climb",
+    "throw",
+    "shows",
+    "SHOWN_VERBS",
     "classify",
     "verdicts",
     "expected_for",
@@ -127,11 +138,54 @@ KICK_MIN_HEIGHT_M = 0.5
 KICK_MIN_FORWARD_M = 0.25
 KICK_HOLD_S = 0.1
 
-# Jump: every foot joint at least JUMP_FEET_M above the floor for at least JUMP_MIN_FLIGHT_S while the pelvis is at
-# least JUMP_RISE_M above its median height (a running stride's flight keeps the pelvis level and lasts 0.1-0.2 s).
+# Jump: every foot joint at least JUMP_FEET_M above the floor for at least JUMP_MIN_FLIGHT_S (and at most
+# JUMP_MAX_FLIGHT_S) while the pelvis is at least JUMP_RISE_M above its median height (a running stride's flight keeps
+# the pelvis level and lasts 0.1-0.2 s).
 JUMP_FEET_M = 0.05
 JUMP_MIN_FLIGHT_S = 0.15
 JUMP_RISE_M = 0.08
+# A "flight" longer than this is standing on something higher (a step, a platform, uneven terrain), not a jump; the
+# longest real CMU jumps fly about 0.6 s.
+JUMP_MAX_FLIGHT_S = 1.0
+
+# The new verbs of the CMU data (calibrated on its real trials: docs/physical_checks.md, "The CMU verbs"). Heights
+# are above the floor, the FLOOR_PERCENTILE of each frame's lowest joint (a body lying down has no foot lower than
+# the rest). The reference skeleton stands with its pelvis at about 0.93 m and its head at about 1.6 m.
+FLOOR_PERCENTILE = 5.0
+# Gets low (sit, squat, kneel, crouch): the pelvis held at most LOW_PELVIS_M above the floor for LOW_HOLD_S.
+LOW_PELVIS_M = 0.70
+LOW_HOLD_S = 0.3
+# On the ground (lie, fall, sit on the floor): the pelvis held at most GROUND_PELVIS_M above the floor.
+GROUND_PELVIS_M = 0.40
+GROUND_HOLD_S = 0.3
+# Crawl: on all fours (head at most CRAWL_HEAD_M, pelvis at most CRAWL_PELVIS_M, a wrist at most CRAWL_WRIST_M above
+# the floor) for at least CRAWL_MIN_S in all, travelling at least CRAWL_TRAVEL_M horizontally while so.
+CRAWL_HEAD_M = 0.85
+CRAWL_PELVIS_M = 0.75
+CRAWL_WRIST_M = 0.25
+CRAWL_MIN_S = 1.0
+CRAWL_TRAVEL_M = 0.4
+# Reaches the floor (pick up): a wrist held at most REACH_WRIST_M above the floor for REACH_HOLD_S while the pelvis is
+# at least REACH_PELVIS_M up (not lying or sitting on the ground).
+REACH_WRIST_M = 0.33
+REACH_HOLD_S = 0.1
+REACH_PELVIS_M = 0.35
+# Inverted (handstand, cartwheel, flip): both ankles above the head for INVERTED_HOLD_S.
+INVERTED_HOLD_S = 0.1
+# Stands up: the pelvis held at most STAND_LOW_M for STAND_LOW_S, then later held at least STAND_HIGH_M for
+# STAND_HIGH_S.
+STAND_LOW_M = 0.60
+STAND_LOW_S = 0.3
+STAND_HIGH_M = 0.80
+STAND_HIGH_S = 0.5
+# Climb: both feet held at least CLIMB_FEET_M above the floor for CLIMB_HOLD_S (a jump's flight is shorter).
+CLIMB_FEET_M = 0.25
+CLIMB_HOLD_S = 0.6
+# Throw: a wrist moves at least THROW_MPS relative to the pelvis, mostly forward, with the hand at least at
+# THROW_WRIST_M below its shoulder (not a swinging arm at the hip).
+THROW_MPS = 3.2
+THROW_FORWARD = 0.5
+THROW_WRIST_M = -0.35
 
 SIDES = ("left", "right")
 
@@ -395,8 +449,105 @@ def jump(joints, fps: float = sk.FPS) -> Check:
     floor = float(np.percentile(feet.min(axis=1), 5))
     rise = j[:, PELVIS, 1] - float(np.median(j[:, PELVIS, 1]))
     flying = (feet.min(axis=1) - floor >= JUMP_FEET_M) & (rise >= JUMP_RISE_M)
-    longest = max((b - a for a, b in _runs(flying)), default=0) / fps
+    flights = [(b - a) / fps for a, b in _runs(flying) if (b - a) / fps <= JUMP_MAX_FLIGHT_S]
+    longest = max(flights, default=0.0)
     return Check(longest >= JUMP_MIN_FLIGHT_S, longest, {"max_rise_m": float(rise.max())})
+
+
+def _floor(j: np.ndarray) -> float:
+    """The floor: the FLOOR_PERCENTILE of each frame's lowest joint height."""
+    return float(np.percentile(j[:, :, 1].min(axis=1), FLOOR_PERCENTILE))
+
+
+def get_low(joints, fps: float = sk.FPS) -> Check:
+    """The body gets low (sits, squats, kneels, crouches): True/False; value: the lowest held pelvis height (m)."""
+    j = _as_joints(joints)
+    pelvis = j[:, PELVIS, 1] - _floor(j)
+    low = -_held_max(-pelvis, _frames(LOW_HOLD_S, fps))
+    return Check(bool(low <= LOW_PELVIS_M), low)
+
+
+def on_ground(joints, fps: float = sk.FPS) -> Check:
+    """The body is on the ground (lies, falls, sits on the floor): True/False; value: the lowest held pelvis
+    height (m)."""
+    j = _as_joints(joints)
+    pelvis = j[:, PELVIS, 1] - _floor(j)
+    low = -_held_max(-pelvis, _frames(GROUND_HOLD_S, fps))
+    return Check(bool(low <= GROUND_PELVIS_M), low)
+
+
+def crawl(joints, fps: float = sk.FPS) -> Check:
+    """Crawling: on all fours and travelling; True/False; value: the seconds on all fours."""
+    j = _as_joints(joints)
+    floor = _floor(j)
+    wrists = j[:, [L_WRIST, R_WRIST], 1].min(axis=1) - floor
+    fours = (j[:, HEAD, 1] - floor <= CRAWL_HEAD_M) & (j[:, PELVIS, 1] - floor <= CRAWL_PELVIS_M) & \
+        (wrists <= CRAWL_WRIST_M)  # (T,)
+    step = np.linalg.norm(np.diff(j[:, PELVIS, ::2], axis=0), axis=1)  # (T-1,)
+    travel = float(step[fours[:-1] & fours[1:]].sum())
+    seconds = float(fours.sum()) / fps
+    return Check(bool(seconds >= CRAWL_MIN_S and travel >= CRAWL_TRAVEL_M), seconds, {"travel_m": travel})
+
+
+def reach_floor(joints, fps: float = sk.FPS) -> Check:
+    """A hand reaches down to the floor (picks something up): True/False; value: the lowest held wrist height
+    (m) while the pelvis is up."""
+    j = _as_joints(joints)
+    floor = _floor(j)
+    wrist = j[:, [L_WRIST, R_WRIST], 1].min(axis=1) - floor
+    up = j[:, PELVIS, 1] - floor >= REACH_PELVIS_M
+    low = -_held_max(np.where(up, -wrist, -10.0), _frames(REACH_HOLD_S, fps))
+    return Check(bool(low <= REACH_WRIST_M), low)
+
+
+def inverted(joints, fps: float = sk.FPS) -> Check:
+    """Upside down (handstand, cartwheel, flip): both ankles above the head; True/False; value: how far the lower
+    ankle is held above the head (m)."""
+    j = _as_joints(joints)
+    above = j[:, [L_ANKLE, R_ANKLE], 1].min(axis=1) - j[:, HEAD, 1]
+    held = _held_max(above, _frames(INVERTED_HOLD_S, fps))
+    return Check(bool(held > 0.0), held)
+
+
+def stand_up(joints, fps: float = sk.FPS) -> Check:
+    """Stands up: the pelvis low first, standing height later; True/False; value: the held standing pelvis height
+    after the low part (m)."""
+    j = _as_joints(joints)
+    pelvis = j[:, PELVIS, 1] - _floor(j)
+    n_low, n_high = _frames(STAND_LOW_S, fps), _frames(STAND_HIGH_S, fps)
+    if len(pelvis) <= n_low:
+        return Check(False, 0.0)
+    lows = np.lib.stride_tricks.sliding_window_view(pelvis, n_low).max(axis=1) <= STAND_LOW_M  # (W,)
+    if not lows.any():
+        return Check(False, 0.0)
+    after = pelvis[int(np.argmax(lows)) + n_low:]
+    high = _held_max(after, n_high) if len(after) else 0.0
+    return Check(bool(high >= STAND_HIGH_M), high)
+
+
+def climb(joints, fps: float = sk.FPS) -> Check:
+    """Climbing: both feet held above the floor on something higher; True/False; value: the held height of the
+    lower foot (m)."""
+    j = _as_joints(joints)
+    feet = j[:, [L_ANKLE, R_ANKLE, L_FOOT, R_FOOT], 1].min(axis=1) - _floor(j)
+    held = _held_max(feet, _frames(CLIMB_HOLD_S, fps))
+    return Check(bool(held >= CLIMB_FEET_M), held)
+
+
+def throw(joints, fps: float = sk.FPS) -> Check:
+    """A throw: a hand flung forward fast; True/False; value: the fastest such wrist speed relative to the pelvis
+    (m/s)."""
+    j = _as_joints(joints)
+    _, forward = body_frame(j)
+    best = 0.0
+    for wrist, shoulder in ((L_WRIST, L_SHOULDER), (R_WRIST, R_SHOULDER)):
+        rel = j[:, wrist] - j[:, PELVIS]  # (T, 3)
+        v = np.diff(rel, axis=0) * fps  # (T-1, 3)
+        speed = np.linalg.norm(v, axis=1)
+        ahead = np.einsum("tc,tc->t", v, forward[:-1]) >= THROW_FORWARD * speed
+        high = (j[1:, wrist, 1] - j[1:, shoulder, 1]) >= THROW_WRIST_M
+        best = max(best, float(np.where(ahead & high, speed, 0.0).max()))
+    return Check(bool(best >= THROW_MPS), best)
 
 
 CHECKS = {
@@ -408,11 +559,35 @@ CHECKS = {
     "bow": bow,
     "kick": kick,
     "jump": jump,
+    "get_low": get_low,
+    "on_ground": on_ground,
+    "crawl": crawl,
+    "reach_floor": reach_floor,
+    "inverted": inverted,
+    "stand_up": stand_up,
+    "climb": climb,
+    "throw": throw,
 }
+# What each verb of mld_core.data.verbs must show (the check of the same name; kick: either foot), and the plain
+# locomotion words a window of a long trial can be found by.
+_VERB_SHOWS = {"jump": ("jump", {True}), "get_low": ("get_low", {True}), "on_ground": ("on_ground", {True}),
+               "crawl": ("crawl", {True}), "reach_floor": ("reach_floor", {True}), "inverted": ("inverted", {True}),
+               "stand_up": ("stand_up", {True}), "climb": ("climb", {True}), "kick": ("kick", {"left", "right", "both"}),
+               "throw": ("throw", {True}), "walk": ("locomotion", {"walk"}), "run": ("locomotion", {"run"})}
+SHOWN_VERBS = tuple(_VERB_SHOWS)
+
+
+def shows(joints, verb: str, fps: float = sk.FPS, result: dict | None = None) -> bool:
+    """True when the motion shows ``verb`` (a verb of mld_core.data.verbs, or "walk" / "run")."""
+    if verb not in _VERB_SHOWS:
+        raise ValueError(f"no physical check for the verb {verb!r}; checked: {', '.join(SHOWN_VERBS)}")
+    name, ok = _VERB_SHOWS[verb]
+    check = result[name] if result is not None else CHECKS[name](joints, fps)
+    return check.verdict in ok
 
 
 def classify(joints, fps: float = sk.FPS) -> dict[str, Check]:
-    """Run every check: {"raised", "waving", "turn", "locomotion", "drift", "bow", "kick", "jump"} -> Check."""
+    """Run every check (the names of ``CHECKS``) -> Check."""
     j = _as_joints(joints)
     return {name: fn(j, fps) for name, fn in CHECKS.items()}
 

@@ -1,0 +1,126 @@
+"""Does a model make the motions people ask for? Per verb (jump, get low, on the ground, crawl, reach the floor,
+inverted, stand up, climb, kick, throw), prompts worded three ways, scored by the verb's physical check and read
+against real CMU motion's pass rate of the same check.
+
+    python scripts/vocabulary.py --data DIR [--model DIR] [--seeds 8] [--seconds 5] [--threads 2] [--json FILE]
+
+DIR is a folder written by ``python -m mld_core data prepare cmu-joints``. The three wordings per verb:
+  caption: test-split captions that ask for the verb (captions written from the whole trial; the first
+           ``--captions`` of them in id order, val split if the test split has none),
+  command: a plain command ("jump", "crawl", "climb a ladder"),
+  user:    a description as a user writes it ("a person jumps over a puddle").
+Each prompt is generated with ``--seeds`` seeds (seeds 0..N-1) at ``--seconds``. The real rate is the check's pass
+rate on the real test windows of that verb (all splits when the test split has fewer than 8). Prints one row per verb
+and wording: takes, pass rate, the real rate and their ratio (the target is >= 0.8); ``--json`` writes every take's
+prompt, seed and pass. A measurement, not a test: it asserts nothing. The Bandai contents' table is
+``scripts/side_accuracy.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from mld_core.data.cmu_joints import whole_trial_windows  # noqa: E402
+from mld_core.data.dataset import read_captions, split_ids  # noqa: E402
+from mld_core.data.verbs import VERBS, verbs_in  # noqa: E402
+from mld_core.eval import physical  # noqa: E402
+
+COMMANDS = {"jump": "jump", "get_low": "squat down", "on_ground": "lie down on the floor", "crawl": "crawl",
+            "reach_floor": "pick something up from the floor", "inverted": "do a cartwheel",
+            "stand_up": "get up from the floor", "climb": "climb a ladder", "kick": "kick", "throw": "throw a ball"}
+USER = {"jump": "a person jumps over a puddle", "get_low": "a person sits down on a chair",
+        "on_ground": "a person collapses to the ground", "crawl": "a person crawls on hands and knees",
+        "reach_floor": "a person picks up an object from the ground", "inverted": "a person does a handstand",
+        "stand_up": "a person stands up from sitting on the ground", "climb": "a person climbs up a ladder",
+        "kick": "a person kicks a ball", "throw": "a person throws a ball"}
+MIN_REAL = 8
+
+
+def windows_of(data: Path, ids: list[str], whole: set[str], verb: str) -> list[tuple[str, list[str]]]:
+    out = []
+    for cid in ids:
+        if cid.startswith("M") or cid not in whole:
+            continue
+        texts = [c.text for c in read_captions(data / "texts" / f"{cid}.txt")]
+        if any(verb in verbs_in(t) for t in texts):
+            out.append((cid, [t for t in texts if verb in verbs_in(t)]))
+    return out
+
+
+def real_rate(data: Path, wins: list[tuple[str, list[str]]], verb: str) -> float:
+    hits = [physical.shows(np.load(data / "new_joints" / f"{cid}.npy"), verb) for cid, _ in wins]
+    return float(np.mean(hits)) if hits else float("nan")
+
+
+def prompts_for(data: Path, verb: str, whole: set[str], captions: int) -> tuple[dict, list]:
+    """The wordings' prompts for ``verb`` and the real windows its real rate is read on."""
+    test = windows_of(data, split_ids(data, "test"), whole, verb)
+    pool = test or windows_of(data, split_ids(data, "val"), whole, verb)
+    chosen = sorted({caps[0] for _, caps in pool})[:captions]
+    real = test if len(test) >= MIN_REAL else windows_of(data, split_ids(data, "all"), whole, verb)
+    return {"caption": chosen, "command": [COMMANDS[verb]], "user": [USER[verb]]}, real
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", required=True, type=Path, help="a folder written by data prepare cmu-joints")
+    ap.add_argument("--model", default=None, help="a model folder (default: the bundled model)")
+    ap.add_argument("--seeds", type=int, default=8)
+    ap.add_argument("--seconds", type=float, default=5.0)
+    ap.add_argument("--captions", type=int, default=2, help="test captions per verb (default 2)")
+    ap.add_argument("--verbs", default=",".join(VERBS), help="comma-separated verbs (default: all)")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args(argv)
+    if not (args.data / "prepare_report.json").is_file():
+        print(f"error: {args.data} is not a folder written by data prepare cmu-joints", file=sys.stderr)
+        return 2
+    verbs = [v.strip() for v in args.verbs.split(",") if v.strip()]
+    unknown = [v for v in verbs if v not in VERBS]
+    if unknown or not 1 <= args.seeds <= 256:
+        print(f"error: unknown verbs {unknown} (known: {', '.join(VERBS)}) or --seeds outside 1..256",
+              file=sys.stderr)
+        return 2
+    import torch
+
+    from mld_core.pipeline import MLDPipeline
+
+    torch.set_num_threads(args.threads)
+    pipe = MLDPipeline.from_pretrained(args.model)
+    whole = set(whole_trial_windows(args.data))
+    rows, takes, start = [], [], time.perf_counter()
+    print(f"model {pipe.model_id}; {args.seeds} seeds x {args.seconds:g} s")
+    print(f"{'verb':12} {'wording':8} {'takes':>5} {'pass':>6} {'real':>6} {'ratio':>6}")
+    for verb in verbs:
+        wordings, real_wins = prompts_for(args.data, verb, whole, args.captions)
+        real = real_rate(args.data, real_wins, verb)
+        for wording, prompts in wordings.items():
+            passed = []
+            for prompt in prompts:
+                out = pipe([prompt], seconds=args.seconds, seed=0, num_variants=args.seeds)
+                for v in range(len(out.joints)):
+                    ok = physical.shows(out.joints[v, : out.lengths[v]], verb)
+                    passed.append(ok)
+                    takes.append({"verb": verb, "wording": wording, "prompt": prompt, "seed": v, "pass": bool(ok)})
+            rate = float(np.mean(passed)) if passed else float("nan")
+            ratio = rate / real if real > 0 else float("nan")
+            rows.append({"verb": verb, "wording": wording, "prompts": prompts, "takes": len(passed), "pass": rate,
+                         "real": real, "real_windows": len(real_wins), "ratio": ratio})
+            print(f"{verb:12} {wording:8} {len(passed):5d} {rate:6.2f} {real:6.2f} {ratio:6.2f}", flush=True)
+    print(f"{len(takes)} takes in {time.perf_counter() - start:.0f} s")
+    if args.json:
+        args.json.write_text(json.dumps({"model": pipe.model_id, "seeds": args.seeds, "seconds": args.seconds,
+                                         "rows": rows, "takes": takes}, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
