@@ -293,13 +293,17 @@ OPTION = {"blend": "--out", "manifest": "--manifest", "preview": "--preview"}
 
 def check_outputs(args, paths: dict) -> None:
     """Every output: a file name of the right kind, none equal to an input or another output, none existing
-    without --overwrite (checked again when the outputs are put in place)."""
+    without --overwrite (checked again when the outputs are put in place); --bvh-dir a writable folder that is
+    none of those files and lies under none of them."""
     if not str(paths["blend"]).endswith(".blend"):
         raise BatchError(f"--out must name a .blend file, got {paths['blend']}")
     sources = {"--prompts": args.prompts, "--jobs": args.jobs, "--rig": args.rig, "--bvh-rig": args.bvh_rig,
                "--bone-map": args.bone_map}
-    inputs.check_outputs({OPTION[k]: p for k, p in paths.items()},
-                         {k: Path(v) for k, v in sources.items() if v}, overwrite=args.overwrite)
+    sources = {k: Path(v) for k, v in sources.items() if v}
+    outputs = {OPTION[k]: p for k, p in paths.items()}
+    inputs.check_outputs(outputs, sources, overwrite=args.overwrite)
+    if args.bvh_dir:
+        inputs.check_output_folder(Path(args.bvh_dir), "--bvh-dir", {**sources, **outputs})
 
 
 def save_blend_copy(tmp: str) -> None:
@@ -414,8 +418,6 @@ def checked_inputs(args, addon) -> _Inputs:
     paths = output_paths(args)
     check_outputs(args, paths)
     bvh_dir = Path(args.bvh_dir) if args.bvh_dir else None
-    if bvh_dir is not None:
-        inputs.check_output_folder(bvh_dir, "--bvh-dir")
     missing = env.missing_modules()
     if missing:
         raise BatchError(env.dependency_message(missing))

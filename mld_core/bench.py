@@ -515,12 +515,26 @@ def register(groups) -> None:
     p.set_defaults(func=_run_cli)
 
 
+def _check_flags(args) -> None:
+    """Every number in its range and --json writable, before the model loads (the timings are not lost to a bad
+    output path)."""
+    from mld_core import inputs
+
+    for flag, hi in (("prompts", 10_000), ("ddpm_prompts", 10_000), ("ddpm_timed_steps", 1000)):
+        inputs.int_in_range(getattr(args, flag), f"--{flag.replace('_', '-')}", 1, hi)
+    inputs.check_seconds(args.seconds, inputs.model_limits(args.model), "--seconds")
+    if args.steps is not None:
+        inputs.check_steps(args.steps, "--steps")
+    args.guidance = inputs.check_guidance(args.guidance, "--guidance")  # 0: the model's default (None)
+    if args.json:
+        inputs.check_outputs({"--json": Path(args.json)}, overwrite=True)
+
+
 def _run_cli(args) -> int:
     from mld_core.checkpoint import CheckpointError
     from mld_core.cli import UsageError
 
-    if args.prompts < 1 or args.ddpm_prompts < 1 or args.ddpm_timed_steps < 1:
-        raise UsageError("--prompts, --ddpm-prompts and --ddpm-timed-steps must be >= 1")
+    _check_flags(args)
     try:
         result = run_bench(args.model, baseline=args.baseline, prompts=args.prompts, seconds=args.seconds,
                            steps=args.steps, guidance_scale=args.guidance, ddpm_prompts=args.ddpm_prompts,

@@ -184,6 +184,8 @@ def load_config(model_dir: Path) -> ModelConfig:
         config = ModelConfig.from_dict(data)
         check_config(config)
         return config
+    except RecursionError:
+        raise CheckpointError(f"corrupt {path}: nested too deeply") from None
     except (ValueError, TypeError, KeyError, AttributeError, OSError, UnicodeDecodeError) as exc:
         raise CheckpointError(f"corrupt {path}: {exc}") from None
 

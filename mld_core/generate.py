@@ -80,7 +80,7 @@ SEQUENCE_OVERLAP_S = 0.5  # each later segment also makes the previous one's las
 
 def _sequence_lines(args) -> list[PromptLine]:
     """--sequence segments as prompt lines (their seconds as frames); refused with what a sequence cannot take."""
-    from mld_core.constraints import read_sequence
+    from mld_core.constraints import sequence_from_data
 
     clashes = [flag for flag, on in (("--variants", args.variants != 1), ("--best", args.best is not None),
                                      ("--keys", args.keys is not None), ("--path", args.path is not None),
@@ -88,7 +88,7 @@ def _sequence_lines(args) -> list[PromptLine]:
                                      ("--unconditional", args.unconditional)) if on]
     if clashes:
         raise InputError(f"--sequence makes one motion from its segments: drop {', '.join(clashes)}")
-    segments = read_sequence(args.sequence)
+    segments = sequence_from_data(inputs.read_json_file(args.sequence, "--sequence"), f"--sequence {args.sequence}")
     limits = inputs.model_limits(args.model)
     lines = []
     for n, (text, seconds) in enumerate(segments, start=1):
@@ -105,9 +105,9 @@ def _constraints(args):
 
     items = []
     if args.keys is not None:
-        items.append(C.read_keys(args.keys))
+        items.append(C.keys_from_data(inputs.read_json_file(args.keys, "--keys"), f"--keys {args.keys}"))
     if args.path is not None:
-        items.append(C.read_path(args.path))
+        items.append(C.path_from_data(inputs.read_json_file(args.path, "--path"), f"--path {args.path}"))
     if args.loop:
         items.append(C.Loop())
     return C.Constraints(items)

@@ -1,15 +1,18 @@
 """User input checked once, by the same rules, for the CLI, the batch script, the panel and the Python API.
 
 Numbers (seconds, seeds, steps, guidance, variants, threads, fps), prompt text, prompt files (one format for
-``generate --prompts`` and the batch: plain text or MLD's ``<frames> <text>``), the model's own length limits
-(read from its config.json without loading weights) and output paths (never an input, another output, a folder
-or under a file). Every problem raises :class:`InputError` with one sentence the user can act on.
+``generate --prompts`` and the batch: plain text or MLD's ``<frames> <text>``), the user's JSON files (one reader:
+size and depth limits, finite numbers of a sane size, no key given twice), the model's own length limits (read
+from its config.json without loading weights) and output paths (never an input, another output, a folder, under
+a file or in a folder that cannot be written). Every problem raises :class:`InputError` with one sentence the
+user can act on.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
 import re
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -25,6 +28,9 @@ SEED_MAX = 2**31 - 1
 MAX_THREADS = 1024
 MAX_FPS = 1000.0
 MAX_SIDE_REDRAWS = 8  # model config side_redraws: draws beyond a take's first when it misses its prompt's side
+MAX_JSON_BYTES = 64 * 2**20  # a user's JSON file (a root path of 100,000 points is about 3 MB)
+MAX_JSON_DEPTH = 32  # nesting of arrays and objects; the deepest format here nests 6
+MAX_JSON_NUMBER = 1e12  # beyond any frame, coordinate, seed or setting; larger numbers overflow later arithmetic
 
 
 class InputError(ValueError):
@@ -113,6 +119,105 @@ def check_fps(fps, what: str = "fps") -> float | None:
     return number_in_range(fps, what, 1, MAX_FPS)
 
 
+# -- the user's JSON files -------------------------------------------------------------------------------------------
+class _Refused:
+    """A JSON number the reader will not pass on (NaN, Infinity or a huge integer), kept as written so that the
+    walk over the document can name the field that holds it."""
+
+    def __init__(self, text: str):
+        self.text = text if len(text) <= 24 else f"{text[:12]}...({len(text)} characters)"
+
+
+class _Object(dict):
+    """A JSON object; ``repeated`` names a key the file gives more than once (JSON would keep only the last)."""
+
+    repeated: str | None = None
+
+
+def _object(pairs: list) -> _Object:
+    obj = _Object(pairs)
+    if len(obj) != len(pairs):
+        seen: set = set()
+        obj.repeated = next(k for k, _ in pairs if k in seen or seen.add(k))
+    return obj
+
+
+def _float(text: str):
+    number = float(text)
+    return number if math.isfinite(number) else _Refused(text)
+
+
+def _json_path(path: tuple) -> str:
+    """A field's place in a document the way jq writes it: ``.jobs[0].seconds``."""
+    return "".join(f"[{p}]" if isinstance(p, int) else f".{p}" if p.isidentifier() else f"[{json.dumps(p)}]"
+                   for p in path) or "the top level"
+
+
+def _checked_tree(data, where: str):
+    """Walk the parsed document (without recursion): refuse a depth beyond MAX_JSON_DEPTH, a refused or
+    non-finite or too large number, and a repeated key, naming the field; return it with plain dicts."""
+    root = [data]
+    stack = [(root, 0, (), 0)]
+    while stack:
+        parent, key, path, depth = stack.pop()
+        value = parent[key]
+        if isinstance(value, (dict, list)):
+            if depth >= MAX_JSON_DEPTH:
+                raise InputError(f"{where} is nested more than {MAX_JSON_DEPTH} levels deep")
+            if isinstance(value, _Object):
+                if value.repeated is not None:
+                    raise InputError(f"{where}: {_json_path(path)} gives {value.repeated!r} more than once")
+                value = parent[key] = dict(value)
+            keys = value.keys() if isinstance(value, dict) else range(len(value))
+            stack.extend((value, k, (*path, k), depth + 1) for k in keys)
+        elif isinstance(value, _Refused) or (isinstance(value, (int, float)) and not isinstance(value, bool)
+                                             and not (math.isfinite(value) and abs(value) <= MAX_JSON_NUMBER)):
+            shown = value.text if isinstance(value, _Refused) else value if isinstance(value, int) else f"{value:g}"
+            raise InputError(f"{where}: {_json_path(path)} must be a finite number of at most {MAX_JSON_NUMBER:g} "
+                             f"in size, got {shown}")
+    return root[0]
+
+
+def parse_json(text: str, where: str):
+    """The JSON document ``text`` (``where`` names it in messages: the flag and the file), checked as
+    :func:`read_json_file` says."""
+    if len(text) > MAX_JSON_BYTES:
+        raise InputError(f"{where} is {len(text) / 2**20:.0f} MB of JSON; the limit is {MAX_JSON_BYTES // 2**20} MB")
+    try:
+        data = json.loads(text, object_pairs_hook=_object, parse_constant=_Refused, parse_float=_float,
+                          parse_int=lambda t: int(t) if len(t.lstrip("-")) <= 15 else _Refused(t))
+    except RecursionError:
+        raise InputError(f"{where} is nested more than {MAX_JSON_DEPTH} levels deep") from None
+    except ValueError as exc:
+        raise InputError(f"{where} is not valid JSON: {exc}") from None
+    return _checked_tree(data, where)
+
+
+def read_json_file(path, what: str):
+    """The JSON document in the user's file ``path`` (``what`` names it: "--keys", "job file"): UTF-8, at most
+    MAX_JSON_BYTES, nested at most MAX_JSON_DEPTH deep, every number finite and at most MAX_JSON_NUMBER in size,
+    no key repeated in an object. Booleans stay JSON booleans; check a switch with :func:`true_or_false`."""
+    path = Path(path)
+    where = f"{what} {path}"
+    if not path.exists():
+        raise InputError(f"{where}: file not found")
+    if not path.is_file():
+        raise InputError(f"{where}: not a file")
+    try:
+        size = path.stat().st_size
+        if size > MAX_JSON_BYTES:
+            raise InputError(f"{where} is {size / 2**20:.0f} MB; the limit is {MAX_JSON_BYTES // 2**20} MB")
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read {where}: {exc.strerror or exc}") from None
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise InputError(f"{where}, line {line}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    return parse_json(text, where)
+
+
 # -- the model's limits ---------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ModelLimits:
@@ -144,7 +249,7 @@ def model_limits(model_dir=None) -> ModelLimits:
                              int(data.get("max_frames", 196)),
                              (float(draft.get("guidance_min", 3.0)), float(draft.get("guidance_max", 5.0)))
                              if isinstance(draft, dict) else None)
-    except (OSError, ValueError, TypeError, AttributeError):
+    except (OSError, ValueError, TypeError, AttributeError, RecursionError):
         return ModelLimits()
     if limits.fps < 1 or not 1 <= limits.min_frames <= limits.max_frames:
         return ModelLimits()
@@ -316,8 +421,9 @@ def check_draft(guidance: float | None, limits: ModelLimits) -> None:
 
 # -- output paths -------------------------------------------------------------------------------------------------
 def check_outputs(outputs: dict[str, Path], inputs: dict[str, Path] | None = None, overwrite: bool = False) -> None:
-    """Refuse an output that is a folder, lies under a file, equals an input or another output, or exists
-    (without ``overwrite``). ``outputs``/``inputs`` map a name for the message (e.g. "--out") to a path."""
+    """Refuse an output that is a folder, lies under a file, equals an input or another output, exists (without
+    ``overwrite``) or would go in a folder that cannot be written. ``outputs``/``inputs`` map a name for the
+    message (e.g. "--out") to a path."""
     seen: dict[Path, str] = {}
     for name, path in (inputs or {}).items():
         if path is not None:
@@ -335,16 +441,38 @@ def check_outputs(outputs: dict[str, Path], inputs: dict[str, Path] | None = Non
             raise InputError(f"{name} {path}: {blocker} is a file, not a folder")
         if path.exists() and not overwrite:
             raise InputError(f"{path} exists; pass --overwrite to replace it")
+        _check_writable(path.expanduser().absolute().parent, name, path)
 
 
-def check_output_folder(path: Path, name: str = "--out") -> None:
-    """An output folder may exist (as a folder) or be created; no file may stand where a folder is needed."""
+def check_output_folder(path: Path, name: str = "--out", files: dict[str, Path] | None = None,
+                        staged_beside: bool = False) -> None:
+    """An output folder may exist (as a folder) or be created; no file may stand where a folder is needed, and it
+    must be writable (with ``staged_beside``, for writers that build a new folder beside it and swap it in, the
+    folder that holds it too). ``files`` (a name for the message -> a path: the run's input and output files) may
+    not be the folder or lie above it (an output file about to be written where the folder goes)."""
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise InputError(f"{name} {path} exists and is not a folder")
     blocker = _file_ancestor(path)
     if blocker is not None:
         raise InputError(f"{name} {path}: {blocker} is a file, not a folder")
+    key = _key(path)
+    for other, file in (files or {}).items():
+        if file is not None and (_key(file) == key or _key(file) in key.parents):
+            raise InputError(f"{name} {path} is the file {other} {file}, or under it; choose another folder")
+    path_abs = path.expanduser().absolute()
+    if staged_beside or not path.is_dir():
+        _check_writable(path_abs.parent, name, path)
+    if path.is_dir():
+        _check_writable(path_abs, name, path)
+
+
+def _check_writable(folder: Path, name: str, path: Path) -> None:
+    """Files can be made in ``folder``, or in the nearest folder above it that exists (it will be made there)."""
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if folder.is_dir() and not os.access(folder, os.W_OK | os.X_OK):
+        raise InputError(f"{name} {path}: the folder {folder} cannot be written (no permission); choose another place")
 
 
 def _key(path) -> Path:

@@ -34,6 +34,7 @@ sys.path.insert(0, str(REPO))
 
 from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, CheckpointError, load_config,  # noqa: E402
                                  load_weights, save_model)
+from mld_core.inputs import InputError, check_output_folder  # noqa: E402
 from mld_core.models.denoiser import LatentDenoiser  # noqa: E402
 from mld_core.models.vae import MotionVAE, take_decoder  # noqa: E402
 from mld_core.training.draft import DRAFT_WEIGHTS, install_draft  # noqa: E402
@@ -114,6 +115,48 @@ def out_problem(out: Path, overwrite: bool) -> str:
     return ""
 
 
+def read_notes(path: Path | None) -> str:
+    """The --notes markdown for the card's measurements (UTF-8), or the default line."""
+    if path is None:
+        return "See the README's results table."
+    try:
+        return path.read_bytes().decode("utf-8")
+    except FileNotFoundError:
+        raise InputError(f"--notes {path}: file not found") from None
+    except OSError as exc:
+        raise InputError(f"cannot read --notes {path}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"--notes {path}: not UTF-8 text ({exc.reason} at byte {exc.start}); save it as UTF-8") \
+            from None
+
+
+def check_data(data: Path | None) -> None:
+    """--data, when given: a HumanML3D-format folder with train captions (the coverage index is built from them)."""
+    if data is None:
+        return
+    from mld_core.coverage import training_captions
+
+    if not data.is_dir():
+        raise InputError(f"--data {data}: no such folder")
+    try:
+        captions, _ = training_captions(data, "train")
+    except (OSError, ValueError) as exc:
+        raise InputError(f"--data {data}: {str(exc).splitlines()[0]}") from None
+    if not captions:
+        raise InputError(f"--data {data}: no train captions to build the coverage index from")
+
+
+def make_parents(folder: Path) -> list[Path]:
+    """Make ``folder`` and the folders above it that are missing; returns those made, outermost first."""
+    missing = []
+    while not folder.exists():
+        missing.append(folder)
+        folder = folder.parent
+    for f in reversed(missing):
+        f.mkdir()
+    return missing[::-1]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path)
@@ -135,8 +178,14 @@ def main(argv=None) -> int:
         print(f"error: {args.run} has no denoiser", file=sys.stderr)
         return 2
     problem = out_problem(args.out, args.overwrite)
-    if problem:
-        print(f"error: {problem}", file=sys.stderr)
+    try:
+        if problem:
+            raise InputError(problem)
+        check_output_folder(args.out, "--out", staged_beside=True)
+        metrics = read_notes(args.notes)
+        check_data(args.data)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     vae, den = MotionVAE(config.vae), LatentDenoiser(config.denoiser)
     load_weights(args.run / "vae.safetensors", vae)
@@ -154,7 +203,6 @@ def main(argv=None) -> int:
         config.model_id = args.model_id
     prov = config.provenance
     training = "\n".join(f"- {k}: `{json.dumps(v)}`" for k, v in prov.items())
-    metrics = args.notes.read_text() if args.notes else "See the README's results table."
     size = sum(p.numel() for m in (vae, den) for p in m.state_dict().values()) * 2 / 1e6
     card = CARD.format(model_id=config.model_id, pool=config.denoiser.text_pool_tokens, n=config.vae.latent_tokens,
                        d=config.vae.latent_dim, vae_layers=config.vae.encoder.layers, skip=config.vae.encoder.skip,
@@ -163,6 +211,7 @@ def main(argv=None) -> int:
                        steps=config.num_inference_steps, guidance=config.guidance_scale,
                        min_s=config.min_frames / config.fps, max_s=config.max_frames / config.fps, size_mb=size,
                        training=training, metrics=metrics)
+    made = make_parents(args.out.parent)
     tmp = Path(tempfile.mkdtemp(dir=args.out.parent, prefix=f".{args.out.name}."))
     try:
         save_model(tmp, config, vae, den, dtype=torch.float16, card=card)
@@ -178,6 +227,9 @@ def main(argv=None) -> int:
     finally:
         if tmp.exists():
             shutil.rmtree(tmp)
+        if not args.out.exists():  # a failed export leaves none of the folders it made
+            for folder in reversed(made):
+                folder.rmdir()
     total = sum(f.stat().st_size for f in args.out.iterdir()) / 1e6
     print(f"wrote {args.out} ({total:.1f} MB)")
     return 0

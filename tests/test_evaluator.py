@@ -369,7 +369,7 @@ def test_cli_evaluate_reports_user_errors(tmp_path, capsys):
     assert "not text" in capsys.readouterr().err
     assert main(["train", "evaluator", "--data", str(data), "--out", str(tmp_path / "x"),
                  "--text-encoder", "{bad"]) == 2
-    assert "not JSON" in capsys.readouterr().err
+    assert "not valid JSON" in capsys.readouterr().err
 
 
 def test_bundled_evaluator_loads_and_embeds_a_real_motion(fixtures):

@@ -286,3 +286,238 @@ def test_export_model_never_deletes_what_it_did_not_write(model, tmp_path, capsy
         assert snapshot(tmp_path) == before
     (out / "my_notes.md").unlink()
     assert export_model.main([str(model), "--out", str(out), "--overwrite"]) == 0
+
+
+# -- the user's JSON files: one reader for --keys, --path, --sequence, --config (and the batch's --jobs) --------------
+DEEP = "[" * 100_000 + "]" * 100_000
+KEY = '{"keys": [{"frame": %s, "joints": {"pelvis": [%s, 0.9, 0]}}]}'
+JSON_CASES = [
+    ("--keys", DEEP, "nested more than 32 levels deep"),
+    ("--keys", '{"keys": ' + "[" * 40 + "]" * 40 + "}", "nested more than 32 levels deep"),
+    ("--keys", KEY % ("1e308", "0"), ".keys[0].frame must be a finite number"),
+    ("--keys", KEY % ("9" * 401, "0"), ".keys[0].frame must be a finite number"),
+    ("--keys", KEY % ("-" + "9" * 401, "0"), ".keys[0].frame must be a finite number"),
+    ("--keys", KEY % ("20", "1e999"), ".keys[0].joints.pelvis[0] must be a finite number"),
+    ("--keys", KEY % ("20", "NaN"), "got NaN"),
+    ("--keys", '{"fps": 20, "fps": 30, "keys": []}', "gives 'fps' more than once"),
+    ("--path", DEEP, "nested more than 32 levels deep"),
+    ("--path", '{"points": [[0, 0, 0], [1e308, 1, 1]]}', ".points[1][0] must be a finite number"),
+    ("--path", '{"points": [[0, 0, 0], [20, -Infinity, 1]]}', "got -Infinity"),
+    ("--sequence", DEEP, "nested more than 32 levels deep"),
+    ("--sequence", '[{"prompt": "a person walks", "seconds": 1e999}]', "[0].seconds must be a finite number"),
+    ("--config", DEEP, "nested more than 32 levels deep"),
+    ("--config", '{"lr": 1e999}', ".lr must be a finite number"),
+]
+
+
+@pytest.mark.parametrize("flag, text, words", JSON_CASES,
+                         ids=[f"{c[0]}-{i}" for i, c in enumerate(JSON_CASES)])
+def test_every_json_reader_refuses_deep_nesting_and_numbers_out_of_range(model, work, capsys, flag, text, words):
+    (work / "in.json").write_text(text)
+    if flag == "--config":
+        data = _h3d_folder(work / "data")
+        argv = ["train", "vae", "--data", data, "--out", work / "run", "--steps", "1", "--config", work / "in.json"]
+    elif flag == "--sequence":
+        argv = ["generate", "--sequence", work / "in.json", "--model", model, "--out", work / "t.npz"]
+    else:
+        argv = ["generate", "a person walks", "--model", model, "--out", work / "t.npz", flag, work / "in.json"]
+    line = refused(argv, work, capsys, words)
+    assert str(work / "in.json") in line  # the file is named
+
+
+def test_inline_json_and_file_limits(work, capsys, monkeypatch):
+    data = _h3d_folder(work / "data")
+    train = ["train", "vae", "--data", data, "--out", work / "run", "--steps", "1"]
+    refused([*train, "--config", '{"vae": ' + DEEP[:2000] + DEEP[-2000:] + "}"], work, capsys,
+            "--config is nested more than 32 levels deep")
+    refused([*train, "--config", '{"lr": 1e-4, "lr": 1e-3}'], work, capsys, "gives 'lr' more than once")
+    refused(["train", "evaluator", "--data", data, "--out", work / "ev", "--text-encoder", DEEP], work, capsys,
+            "--text-encoder is nested more than 32 levels deep")
+    monkeypatch.setattr(inputs, "MAX_JSON_BYTES", 64)
+    (work / "big.json").write_text('{"keys": [' + ", ".join(["1"] * 40) + "]}")
+    refused([*train, "--config", work / "big.json"], work, capsys, "the limit is")
+    (work / "latin1.json").write_bytes(b'{"lr": "caf\xe9"}')
+    refused([*train, "--config", work / "latin1.json"], work, capsys, "not UTF-8")
+    refused([*train, "--config", work / "no_such.json"], work, capsys, "file not found")
+
+
+def test_the_json_reader_keeps_ordinary_documents_as_they_are():
+    text = '{"fps": 30, "keys": [{"frame": 12, "joints": {"pelvis": [0.1, 0.9, -2.5e-3]}}], "on": true, "x": null}'
+    assert inputs.parse_json(text, "t") == json.loads(text)
+    assert inputs.parse_json("[1e12, -1e12, 999999999999]", "t") == [1e12, -1e12, 999999999999]
+    with pytest.raises(inputs.InputError, match=r"\[1\] must be a finite number .*, got 1000000000001$"):
+        inputs.parse_json("[0, 1000000000001]", "t")
+
+
+# -- training, evaluation and benchmark flags --------------------------------------------------------------------
+@pytest.mark.parametrize("stage, extra, words", [
+    ("vae", ["--steps", "0"], "--steps must be between 1 and"),
+    ("vae", ["--steps", "-1"], "--steps must be between 1 and"),
+    ("vae", ["--minutes", "-1"], "--minutes must be above 0"),
+    ("vae", ["--minutes", "0"], "--minutes must be above 0"),
+    ("vae", ["--minutes", "nan"], "--minutes must be a finite number"),
+    ("vae", ["--minutes", "inf"], "--minutes must be a finite number"),
+    ("vae", ["--lr", "nan"], "--lr must be a finite number"),
+    ("vae", ["--layers", "0"], "--layers must be between 1 and 64"),
+    ("vae", ["--latent-tokens", "-2"], "--latent-tokens must be between 1 and 64"),
+    ("denoiser", ["--steps", "0"], "--steps must be between 1 and"),
+    ("denoiser", ["--minutes", "-5"], "--minutes must be above 0"),
+    ("draft", ["--minutes", "nan"], "--minutes must be a finite number"),
+], ids=lambda v: " ".join(v) if isinstance(v, list) else v)
+def test_train_refuses_a_budget_that_would_make_no_step(tmp_path, capsys, stage, extra, words):
+    data = _h3d_folder(tmp_path / "data")
+    argv = ["train", stage, "--data", data, "--out", tmp_path / "run", *extra]
+    if stage == "denoiser":
+        argv += ["--vae", tmp_path / "no_vae"]
+    refused(argv, tmp_path, capsys, words)
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_time_budget_lets_a_run_make_at_least_one_step():
+    from mld_core.training.common import Budget
+
+    budget = Budget(None, 1e-9)  # spent before the first step
+    assert not budget.done(0) and budget.done(1)
+    resumed = Budget(None, 1e-9)  # a resumed run makes one step of its own too
+    assert not resumed.done(500) and resumed.done(501)
+    with pytest.raises(ValueError, match="minutes must be above 0"):
+        Budget(None, -1)
+
+
+def test_train_evaluator_refuses_numbers_out_of_range(tmp_path, capsys):
+    data = _h3d_folder(tmp_path / "data")
+    base = ["train", "evaluator", "--data", data, "--out", tmp_path / "ev"]
+    for extra, words in [(["--minutes", "-1"], "--minutes must be 0 (no limit) or more"),
+                         (["--minutes", "nan"], "--minutes must be a finite number"),
+                         (["--lr", "inf"], "--lr must be a finite number"), (["--epochs", "0"], "--epochs must be"),
+                         (["--batch-size", "1"], "--batch-size must be between 2"),
+                         (["--hidden", "0"], "--hidden must be between 1")]:
+        refused([*base, *extra], tmp_path, capsys, words)
+
+
+@pytest.fixture
+def eval_data(tmp_path) -> Path:
+    data = _h3d_folder(tmp_path / "data")
+    (data / "test.txt").write_text("000001\n")
+    return data
+
+
+EVALUATE_CASES = [
+    (["--batch-size", "0"], "--batch-size must be between 1 and 4096, got 0"),
+    (["--mm-texts", "-1"], "--mm-texts must be between 0 and"),
+    (["--mm-repeats", "5"], "--mm-repeats must be at least 10"),
+    (["--max-pairs", "0"], "--max-pairs must be between 8 and"),
+    (["--max-pairs", "7"], "--max-pairs must be between 8 and"),
+    (["--replications", "0"], "--replications must be between 1"),
+    (["--steps", "0"], "--steps must be between 1 and 500"),
+    (["--guidance", "nan"], "--guidance must be a finite number"),
+    (["--seed", "5000"], "--seed must be between 0 and"),
+]
+
+
+@pytest.mark.parametrize("extra, words", EVALUATE_CASES, ids=[" ".join(c[0]) for c in EVALUATE_CASES])
+def test_evaluate_refuses_numbers_out_of_range_before_any_work(model, eval_data, capsys, extra, words):
+    refused(["evaluate", "t2m", "--data", eval_data, "--model", model, *extra], eval_data.parent, capsys, words)
+
+
+def test_evaluate_max_pairs_minimum_depends_on_the_task(model, eval_data, capsys):
+    refused(["evaluate", "vae", "--data", eval_data, "--model", model, "--max-pairs", "1"], eval_data.parent,
+            capsys, "--max-pairs must be between 2 and")
+
+
+BENCH_CASES = [
+    (["--prompts", "0"], "--prompts must be between 1"),
+    (["--ddpm-prompts", "-1"], "--ddpm-prompts must be between 1"),
+    (["--ddpm-timed-steps", "0"], "--ddpm-timed-steps must be between 1"),
+    (["--seconds", "nan"], "--seconds (seconds) must be a finite number"),
+    (["--seconds", "100"], "--seconds must be between 1 and 9.8 seconds for this model"),
+    (["--steps", "0"], "--steps must be between 1 and 500"),
+    (["--guidance", "-1"], "--guidance must be between 0"),
+]
+
+
+@pytest.mark.parametrize("extra, words", BENCH_CASES, ids=[" ".join(c[0]) for c in BENCH_CASES])
+def test_bench_refuses_numbers_out_of_range_before_any_work(model, work, capsys, extra, words):
+    refused(["bench", "--model", model, "--no-progress", *extra], work, capsys, words)
+
+
+def test_evaluate_and_bench_check_their_json_output_before_the_work(model, eval_data, capsys):
+    root = eval_data.parent
+    (root / "results").mkdir()
+    (root / "a_file").write_text("x")
+    for where, words in [(root / "results", "is a folder; name a file"),
+                         (root / "a_file" / "r.json", "a_file is a file, not a folder")]:
+        refused(["evaluate", "t2m", "--data", eval_data, "--model", model, "--json", where], root, capsys, words)
+        refused(["bench", "--model", model, "--json", where], root, capsys, words)
+
+
+# -- outputs that cannot be written ------------------------------------------------------------------------------
+@pytest.fixture
+def locked(tmp_path, monkeypatch) -> Path:
+    """A folder that reads as not writable. The tests run as root, which may write anywhere, so permissions cannot
+    lock it: os.access is made to answer no for it (every writer checks with os.access before any work)."""
+    import os
+
+    folder = tmp_path / "locked"
+    folder.mkdir()
+    real = os.access
+
+    def access(path, mode, *args, **kwargs):
+        if Path(path).absolute() == folder and mode & os.W_OK:
+            return False
+        return real(path, mode, *args, **kwargs)
+
+    monkeypatch.setattr(os, "access", access)
+    return folder
+
+
+def test_an_output_folder_that_cannot_be_written_is_refused_before_any_work(model, fixtures, tmp_path, locked,
+                                                                            capsys):
+    data = _h3d_folder(tmp_path / "data")
+    (data / "test.txt").write_text("000001\n")
+    words = "cannot be written"
+    refused(["generate", "a person walks", "--model", model, "--out", locked / "t.npz"], tmp_path, capsys, words)
+    refused(["generate", "a person walks", "--model", model, "--out", locked / "new" / "t.npz"], tmp_path, capsys,
+            words)
+    refused(["train", "vae", "--data", data, "--out", locked / "run", "--steps", "1"], tmp_path, capsys, words)
+    refused(["data", "prepare", "bandai", fixtures / "bandai", "--out", locked / "data", "--workers", "1"], tmp_path,
+            capsys, words)
+    refused(["evaluate", "t2m", "--data", data, "--model", model, "--json", locked / "r.json"], tmp_path, capsys,
+            words)
+    refused(["bench", "--model", model, "--json", locked / "b.json"], tmp_path, capsys, words)
+    export = _export_model()
+    before = snapshot(tmp_path)
+    assert export.main([str(model), "--out", str(locked / "model")]) == 2
+    err = capsys.readouterr().err
+    assert words in err and "Traceback" not in err and snapshot(tmp_path) == before, err
+
+
+def _export_model():
+    import sys
+
+    sys.path.insert(0, str(REPO / "scripts"))
+    import export_model
+
+    return export_model
+
+
+def test_export_model_checks_its_inputs_and_output_before_writing(model, tmp_path, capsys):
+    export = _export_model()
+    (tmp_path / "a_file").write_text("x")
+    (tmp_path / "latin1.md").write_bytes(b"caf\xe9\n")
+    (tmp_path / "empty").mkdir()
+    before = snapshot(tmp_path)
+    for argv, words in [(["--out", tmp_path / "a_file" / "model"], "a_file is a file, not a folder"),
+                        (["--out", tmp_path / "new" / "m", "--notes", tmp_path / "no_notes.md"],
+                         "--notes " + str(tmp_path / "no_notes.md") + ": file not found"),
+                        (["--out", tmp_path / "new" / "m", "--notes", tmp_path / "latin1.md"], "not UTF-8 text"),
+                        (["--out", tmp_path / "new" / "m", "--data", tmp_path / "no_data"], "no such folder"),
+                        (["--out", tmp_path / "new" / "m", "--data", tmp_path / "empty"], "--data")]:
+        assert export.main([str(model), *map(str, argv)]) == 2, argv
+        err = capsys.readouterr().err
+        lines = [line for line in err.splitlines() if line.startswith("error:")]
+        assert len(lines) == 1 and words in lines[0] and "Traceback" not in err, err
+        assert snapshot(tmp_path) == before, argv
+    # missing folders above --out are made
+    assert export.main([str(model), "--out", str(tmp_path / "new" / "a" / "b" / "model")]) == 0
+    assert (tmp_path / "new" / "a" / "b" / "model" / "config.json").is_file()

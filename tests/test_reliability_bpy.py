@@ -52,6 +52,10 @@ def test_batch_checks_every_input_and_output_before_any_work(work, capsys):
         (["--prompt", "walk", "--out", w / "x.blend", "--seconds", "1"], "between 2 and 9.8 seconds"),
         (["--prompt", "walk", "--out", w / "x.blend", "--tolerance", "nan"], "finite"),
         (["--prompt", "walk", "--out", w / "x.blend", "--bvh-dir", w / "prompts.txt"], "not a folder"),
+        (["--prompt", "walk", "--out", w / "t.blend", "--bvh-dir", w / "t.blend", "--overwrite"],
+         "is the file --out"),
+        (["--prompt", "walk", "--out", w / "t.blend", "--bvh-dir", w / "t.blend" / "bvh"], "is the file --out"),
+        (["--prompt", "walk", "--out", w / "t.blend", "--bvh-dir", w / "t.json"], "is the file --manifest"),
     ]
     for text in ("-5 a person walks", "2.5 a person walks", "100"):
         name = f"bad{len(cases)}.txt"
@@ -128,6 +132,19 @@ def test_batch_job_files_are_checked_before_any_work(work, capsys):
         "long.json": (json.dumps({"jobs": [{"sequence": [{"prompt": "a walk", "seconds": 2},
                                                          {"prompt": "a run", "seconds": 9.6}]}]}), "segment 2"),
     }
+    walk = '{"jobs": [{"prompt": "a walk", %s}]}'
+    bad.update({
+        "three.json": (walk % '"seconds": "three"', "job 1: seconds must be a number, got 'three'"),
+        "nan.json": (walk % '"seconds": NaN', ".jobs[0].seconds must be a finite number"),
+        "list.json": (walk % '"seconds": [3]', "job 1: seconds must be a number, got [3]"),
+        "huge.json": (walk % '"seconds": 1e999', ".jobs[0].seconds must be a finite number"),
+        "short.json": (walk % '"seconds": 1', "job 1: seconds must be between 2 and 9.8"),
+        "loop.json": (walk % '"loop": "false"', "job 1: loop must be true or false, got 'false'"),
+        "seed.json": (walk % '"seed": 4294967296', "job 1: Seed must be between"),
+        "frame.json": (walk % '"keys": {"keys": [{"frame": 1e308, "joints": {"pelvis": [0, 1, 0]}}]}',
+                       ".jobs[0].keys.keys[0].frame must be a finite number"),
+        "deep.json": ('{"jobs": ' + "[" * 50_000 + "]" * 50_000 + "}", "nested more than 32 levels deep"),
+    })
     for name, (text, words) in bad.items():
         (w / name).write_text(text)
         batch_refuses(["--jobs", w / name, "--out", w / "x.blend"], w, capsys, words)

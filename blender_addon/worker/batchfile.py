@@ -6,9 +6,6 @@ mld_core.inputs (the same format and messages as ``python -m mld_core generate -
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 from mld_core.inputs import InputError as BatchFileError  # noqa: F401 - the batch catches this name
 from mld_core.inputs import PromptLine, parse_prompt_lines, read_prompt_file, validate_request  # noqa: F401
 
@@ -24,13 +21,14 @@ def requests_from_lines(lines: list[PromptLine], *, default_seconds: float, seed
     ``extras`` (one dict per line, from :func:`read_job_file`) become each request's ``extra``.
     """
     requests = []
+    kind = "job" if extras else "line"
     for index, line in enumerate(lines):
         extra = extras[index] if extras else {}
         line_seed = extra.get("seed", seed + index)
         try:
             request = validate_request(line.text, line.seconds(default_seconds), line_seed, **settings)
         except BatchFileError as exc:
-            raise BatchFileError(f"line {line.line}: {exc}") from None
+            raise BatchFileError(f"{kind} {line.line}: {exc}") from None
         requests.append(request.with_(extra=extra) if extra else request)
     return requests
 
@@ -39,14 +37,9 @@ def read_job_file(path, model_dir=None) -> tuple[list[PromptLine], list[dict]]:
     """(one PromptLine per job: its prompt, or a sequence's first segment; one extra per job: constraints,
     sequence, seed and the job as given, for the manifest)."""
     from mld_core import constraints as C
-    from mld_core.inputs import check_seconds, model_limits, whole_number
+    from mld_core.inputs import check_seconds, finite_number, model_limits, read_json_file, true_or_false, whole_number
 
-    try:
-        data = json.loads(Path(path).read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise BatchFileError(f"cannot read job file {path}: {exc.strerror or exc}") from None
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise BatchFileError(f"job file {path} is not valid JSON: {exc}") from None
+    data = read_json_file(path, "job file")
     jobs = data.get("jobs") if isinstance(data, dict) else None
     if not isinstance(jobs, list) or not jobs:
         raise BatchFileError(f"job file {path}: expected {{\"jobs\": [{{\"prompt\": \"...\"}}, ...]}}")
@@ -57,6 +50,8 @@ def read_job_file(path, model_dir=None) -> tuple[list[PromptLine], list[dict]]:
         if not isinstance(job, dict) or not (set(job) <= JOB_KEYS) or ("prompt" in job) == ("sequence" in job):
             raise BatchFileError(f"{where}: a job has a \"prompt\" or a \"sequence\" (not both), and only "
                                  f"{', '.join(sorted(JOB_KEYS))}")
+        if "loop" in job:  # "false" would read as on
+            true_or_false(job["loop"], f"{where}: loop")
         extra = {"job": job, "constraints": C.constraints_from_job(job, where)}
         if "seed" in job:
             extra["seed"] = whole_number(job["seed"], f"{where}: seed")
@@ -70,7 +65,9 @@ def read_job_file(path, model_dir=None) -> tuple[list[PromptLine], list[dict]]:
             text, seconds = segments[0]
         else:
             text, seconds = job["prompt"], job.get("seconds")
-        frames = None if seconds is None else int(round(float(seconds) * 20))
+            if seconds is not None:
+                seconds = check_seconds(finite_number(seconds, f"{where}: seconds"), limits, f"{where}: seconds")
+        frames = None if seconds is None else int(round(seconds * 20))
         lines.append(PromptLine(n, text, frames))
         extras.append(extra)
     return lines, extras

@@ -70,6 +70,9 @@ def register(groups) -> None:
     e.set_defaults(func=run_evaluate)
 
 
+SETTING_FLAGS = {"num_inference_steps": "--steps", "guidance_scale": "--guidance"}  # else --field-name
+
+
 def _usage(msg: str):
     from mld_core.cli import UsageError
 
@@ -87,13 +90,28 @@ def _check_folder(path: str, split: str | None = "train") -> Path:
     return root
 
 
+def _check_train_flags(args: argparse.Namespace) -> None:
+    """train evaluator's numbers in range before any work (--minutes 0: no time limit)."""
+    from mld_core.inputs import InputError, finite_number, int_in_range, number_in_range
+
+    int_in_range(args.epochs, "--epochs", 1, 100_000)
+    int_in_range(args.batch_size, "--batch-size", 2, 65_536)
+    int_in_range(args.threads, "--threads", 1, 1024)
+    if finite_number(args.minutes, "--minutes") < 0:
+        raise InputError(f"--minutes must be 0 (no limit) or more, got {args.minutes:g}")
+    number_in_range(args.lr, "--lr", 1e-12, 1.0)
+    for flag, hi in (("hidden", 4096), ("layers", 64), ("ff_dim", 65_536)):
+        if getattr(args, flag) is not None:
+            int_in_range(getattr(args, flag), f"--{flag.replace('_', '-')}", 1, hi)
+
+
 def run_train(args: argparse.Namespace) -> int:
     from mld_core.eval.evaluator import EvaluatorConfig
     from mld_core.eval.train import EvaluatorTrainConfig, train_evaluator
+    from mld_core.inputs import parse_json
 
     _check_folder(args.data, "train")
-    if args.epochs < 1 or args.batch_size < 2 or args.threads < 1:
-        raise _usage("--epochs must be >= 1, --batch-size >= 2, --threads >= 1")
+    _check_train_flags(args)
     cfg = EvaluatorTrainConfig(data=args.data, out=args.out, seed=args.seed, threads=args.threads, epochs=args.epochs,
                                minutes=args.minutes or None, batch_size=args.batch_size, lr=args.lr)
     model_cfg = EvaluatorConfig()
@@ -103,12 +121,7 @@ def run_train(args: argparse.Namespace) -> int:
     if args.ff_dim:
         model_cfg.ff_dim = args.ff_dim
     if args.text_encoder:
-        import json
-
-        try:
-            spec = json.loads(args.text_encoder)
-        except ValueError as exc:
-            raise _usage(f"--text-encoder is not JSON: {exc}") from None
+        spec = parse_json(args.text_encoder, "--text-encoder")
         if not isinstance(spec, dict) or "kind" not in spec:
             raise _usage('--text-encoder must be a JSON object with a "kind", e.g. {"kind": "minilm"}')
         model_cfg.text_encoder = spec
@@ -128,8 +141,10 @@ def run_train(args: argparse.Namespace) -> int:
 def run_evaluate(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from mld_core.eval.evaluate import PRESETS, EvalSettings, PipelineGenerator, evaluate, format_table, write_json
+    from mld_core.eval.evaluate import (PRESETS, EvalSettings, PipelineGenerator, check_settings, evaluate,
+                                        format_table, write_json)
     from mld_core.eval.evaluator import Evaluator, EvaluatorError
+    from mld_core.inputs import check_outputs
 
     root = _check_folder(args.data, args.split)
     settings = replace(EvalSettings(), **PRESETS[args.preset])
@@ -139,8 +154,9 @@ def run_evaluate(args: argparse.Namespace) -> int:
     settings = replace(settings, **{k: v for k, v in overrides.items() if v is not None},
                        split=args.split, seed=args.seed, batch_size=args.batch_size, vae_sample=not args.vae_mean,
                        draft=args.draft, side_redraws=args.side_redraws)
-    if settings.replications < 1:
-        raise _usage("--replications must be >= 1")
+    check_settings(settings, args.task, lambda field: SETTING_FLAGS.get(field, "--" + field.replace("_", "-")))
+    if args.json:  # checked now: the results of a long run are not lost to an output that cannot be written
+        check_outputs({"--json": Path(args.json)}, overwrite=True)
     if args.threads:
         import torch
 

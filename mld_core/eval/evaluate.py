@@ -86,6 +86,37 @@ PRESETS = {
 }
 
 
+# Replication r's generations are seeded from seed * SEED_STRIDE + r * REPLICATION_SEED_STRIDE on, and use fewer
+# than SEEDS_PER_REPLICATION seeds (its pairs, then 50,000 on, mm_texts x mm_repeats for MultiModality).
+SEED_STRIDE, REPLICATION_SEED_STRIDE, SEEDS_PER_REPLICATION = 1_000_003, 100_003, 2 * 10**7
+
+
+def min_pairs(task: str, settings: EvalSettings) -> int:
+    """The fewest pairs a replication can score: R-precision needs a pool, FID and Diversity two motions."""
+    return 2 if task == "vae" else max(2, min(settings.r_pool, 8))
+
+
+def check_settings(settings: EvalSettings, task: str, name: Callable[[str], str] = str) -> None:
+    """Every number of ``settings`` in its range for ``task``, or InputError naming the field as ``name(field)``
+    (the command line passes its flags' names); nothing is clamped or silently skipped."""
+    from mld_core import inputs
+
+    for field, lo, hi in (("replications", 1, 10_000), ("batch_size", 1, 4096), ("mm_texts", 0, 10_000),
+                          ("mm_repeats", 0, 1000)):
+        inputs.int_in_range(getattr(settings, field), name(field), lo, hi)
+    if settings.max_pairs is not None:
+        inputs.int_in_range(settings.max_pairs, name("max_pairs"), min_pairs(task, settings), 10**9)
+    if task == "t2m" and settings.mm_texts > 0 and settings.mm_repeats < settings.mm_times:
+        raise inputs.InputError(f"{name('mm_repeats')} must be at least {settings.mm_times} (MultiModality compares "
+                                f"{settings.mm_times} pairs per text), got {settings.mm_repeats}; or set "
+                                f"{name('mm_texts')} 0 to leave MultiModality out")
+    if settings.num_inference_steps is not None:
+        inputs.check_steps(settings.num_inference_steps, name("num_inference_steps"))
+    inputs.check_guidance(settings.guidance_scale, name("guidance_scale"))
+    top = (inputs.SEED_MAX - settings.replications * REPLICATION_SEED_STRIDE - SEEDS_PER_REPLICATION) // SEED_STRIDE
+    inputs.int_in_range(settings.seed, name("seed"), 0, max(top, 0))  # every generation's seed stays a valid seed
+
+
 # --------------------------------------------------------------------------------------------------
 # Generation through the pipeline
 # --------------------------------------------------------------------------------------------------
@@ -149,7 +180,7 @@ class PipelineGenerator:
         from tqdm import tqdm
 
         out = []
-        bs = max(1, self.settings.batch_size)
+        bs = self.settings.batch_size
         for start in tqdm(range(0, n, bs), desc=desc, unit="batch", leave=False, disable=not self.progress):
             out += make_call(slice(start, min(n, start + bs)))
         return out
@@ -303,6 +334,7 @@ def evaluate(task: str, evaluator, clips: Sequence, generator: PipelineGenerator
 
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r}; choose one of {', '.join(TASKS)}")
+    check_settings(settings, task)
     from mld_core.bench import OtherLoad
 
     started, cpu_started = time.monotonic(), time.process_time()
@@ -322,9 +354,9 @@ def evaluate(task: str, evaluator, clips: Sequence, generator: PipelineGenerator
 
     ref_pairs = _draw(clips, np.random.default_rng([settings.seed, 999_999]),
                       replace(settings, max_pairs=None), frame_range, fps, need_action=need_action)
-    min_pairs = 2 if task == "vae" else max(2, min(settings.r_pool, 8))
-    if len(ref_pairs) < min_pairs:
-        raise ValueError(f"the split has only {len(ref_pairs)} usable clips (need >= {min_pairs}) between "
+    fewest = min_pairs(task, settings)
+    if len(ref_pairs) < fewest:
+        raise ValueError(f"the split has only {len(ref_pairs)} usable clips (need >= {fewest}) between "
                          f"{frame_range[0]} and {frame_range[1]} frames")
     ref_emb = evaluator.encode_motion([p.features for p in ref_pairs])
     rows = _Rows()
@@ -344,7 +376,7 @@ def evaluate(task: str, evaluator, clips: Sequence, generator: PipelineGenerator
         real_feats = [p.features for p in pairs]
         frames = [p.length for p in pairs]
         real_emb = evaluator.encode_motion(real_feats)
-        gen_seed = settings.seed * 1_000_003 + rep * 100_003
+        gen_seed = settings.seed * SEED_STRIDE + rep * REPLICATION_SEED_STRIDE
         if task == "t2m":
             texts = [p.text for p in pairs]
             text_emb = text_embeddings(texts)

@@ -116,11 +116,15 @@ class BoneMap:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "BoneMap":
+        """A map saved by :meth:`save` (read by the JSON reader of every user file: mld_core.inputs)."""
+        from mld_core.inputs import InputError, parse_json
+
+        with open(path, encoding="utf-8") as fh:
+            text = fh.read()
         try:
-            with open(path, encoding="utf-8") as fh:
-                data = json.load(fh)
-        except json.JSONDecodeError as exc:
-            raise BoneMapError(f"{os.fspath(path)} is not valid JSON: {exc}") from None
+            data = parse_json(text, os.fspath(path))
+        except InputError as exc:
+            raise BoneMapError(str(exc)) from None
         return cls.from_dict(data)
 
 

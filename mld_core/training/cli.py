@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import json
-import math
 from pathlib import Path
 
 from mld_core.cli import UsageError
-from mld_core.inputs import check_output_folder, true_or_false
+from mld_core.inputs import (check_output_folder, int_in_range, number_in_range, parse_json, read_json_file,
+                             true_or_false)
 
 
 def _run_options(p) -> None:
@@ -73,27 +72,25 @@ def _model_folder(value: str | None, flag: str) -> Path:
     return path
 
 
-def _no_constant(name: str):
-    raise ValueError(f"{name} is not a number a setting can take")
+def _check_run_options(args) -> None:
+    """--steps, --minutes and --lr (and --layers, --latent-tokens where the stage has them) in range, before the
+    run folder is made: a run that would make no optimiser step is refused."""
+    from mld_core.training.common import checked_budget
 
-
-def _finite_float(text: str) -> float:
-    value = float(text)
-    if not math.isfinite(value):
-        raise ValueError(f"{text} is not a finite number")
-    return value
+    checked_budget(args.steps, args.minutes, ("--steps", "--minutes"))
+    if args.lr is not None:
+        number_in_range(args.lr, "--lr", 1e-12, 1.0)
+    for flag in ("layers", "latent_tokens"):
+        if getattr(args, flag, None) is not None:
+            int_in_range(getattr(args, flag), f"--{flag.replace('_', '-')}", 1, 64)
 
 
 def _overrides(args, config_class) -> dict:
     """--config: a JSON object of the stage config's own fields, written inline or in a file."""
     if args.config is None:
         return {}
-    try:
-        inline = args.config.lstrip()[:1] in ("{", "[")
-        data = json.loads(args.config if inline else Path(args.config).read_text(), parse_constant=_no_constant,
-                          parse_float=_finite_float)
-    except (OSError, ValueError) as exc:
-        raise UsageError(f"cannot read --config {args.config}: {exc}") from None
+    inline = args.config.lstrip()[:1] in ("{", "[")
+    data = parse_json(args.config, "--config") if inline else read_json_file(args.config, "--config")
     if not isinstance(data, dict):
         raise UsageError(f"--config {args.config} must hold a JSON object of settings, got a {type(data).__name__}")
     unknown = sorted(set(data) - set(config_class.__dataclass_fields__))
@@ -139,6 +136,7 @@ def _run(train, make_config, out: str, resume: bool) -> int:
 def run_vae(args) -> int:
     from mld_core.training.vae import VAETrainConfig, train_vae
 
+    _check_run_options(args)
     _check_data(args.data)
     over = _overrides(args, VAETrainConfig)
     return _run(train_vae, lambda: _vae_config(args, over), args.out, args.resume)
@@ -167,6 +165,7 @@ def _vae_config(args, over: dict):
 def run_denoiser(args) -> int:
     from mld_core.training.denoiser import DenoiserTrainConfig, train_denoiser
 
+    _check_run_options(args)
     _check_data(args.data)
     over = _overrides(args, DenoiserTrainConfig)
     return _run(train_denoiser, lambda: _denoiser_config(args, over), args.out, args.resume)
@@ -207,6 +206,7 @@ def run_draft_text(args) -> int:
 def _run_distillation(args, config_class, train, install, what: str, extra: dict | None = None) -> int:
     """train draft / draft-text: distil a part of the --teacher model folder into --out, then with --install copy
     the result into the teacher's folder."""
+    _check_run_options(args)
     _check_data(args.data)
     teacher = _model_folder(args.teacher, "--teacher")
     over = {**_overrides(args, config_class), **(extra or {})}

@@ -53,28 +53,34 @@ def balanced_weights(labels: list, power: float) -> np.ndarray:
     return w / w.sum()
 
 
-def checked_budget(steps, minutes) -> tuple[int | None, float | None]:
-    """A run's --steps and --minutes checked (a whole number >= 1, a finite number > 0, or None) and as numbers."""
+def checked_budget(steps, minutes, names: tuple[str, str] = ("steps", "minutes")) -> tuple[int | None, float | None]:
+    """A run's --steps and --minutes checked (a whole number >= 1, a finite number > 0, or None) and as numbers;
+    ``names`` name them in the messages."""
     if steps is not None:
-        steps = inputs.int_in_range(steps, "steps", 1, 10**9)
+        steps = inputs.int_in_range(steps, names[0], 1, 10**9)
     if minutes is not None:
-        minutes = inputs.finite_number(minutes, "minutes")
+        minutes = inputs.finite_number(minutes, names[1])
         if minutes <= 0:
-            raise inputs.InputError(f"minutes must be above 0, got {minutes}")
+            raise inputs.InputError(f"{names[1]} must be above 0, got {minutes:g}")
     return steps, minutes
 
 
 class Budget:
-    """Stops a loop after max_steps or max_minutes, whichever comes first."""
+    """Stops a loop after max_steps or max_minutes, whichever comes first; the time limit lets a run make at least
+    one step (a model folder is never written from a run that made none)."""
 
     def __init__(self, max_steps: int | None, max_minutes: float | None):
-        self.max_steps, self.max_minutes = max_steps, max_minutes
+        self.max_steps, self.max_minutes = checked_budget(max_steps, max_minutes)
         self.start = time.monotonic()
+        self.first_step: int | None = None  # the step this run started from (a resumed run's saved step)
 
     def done(self, step: int) -> bool:
         if self.max_steps is not None and step >= self.max_steps:
             return True
-        return self.max_minutes is not None and (time.monotonic() - self.start) / 60 >= self.max_minutes
+        if self.first_step is None:
+            self.first_step = step
+        return (step > self.first_step and self.max_minutes is not None
+                and (time.monotonic() - self.start) / 60 >= self.max_minutes)
 
     @property
     def minutes(self) -> float:

@@ -30,9 +30,9 @@ from mld_core.data.captions import reworded
 from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import DDPMScheduler
-from mld_core.training.common import (Budget, balanced_weights, check_resumed_modules, checked_module_names,
-                                     load_train_state, lr_factor, save_train_state, set_lr, setup_torch,
-                                     trainable_parameters)
+from mld_core.training.common import (Budget, balanced_weights, check_resumed_modules, checked_budget,
+                                     checked_module_names, load_train_state, lr_factor, save_train_state, set_lr,
+                                     setup_torch, trainable_parameters)
 from mld_core.training.vae import prepare_run_dir
 
 LATENT_CACHE = "latents.safetensors"
@@ -67,6 +67,7 @@ class DenoiserTrainConfig:
     denoiser: DenoiserConfig = field(default_factory=DenoiserConfig)
 
     def __post_init__(self):
+        self.steps, self.minutes = checked_budget(self.steps, self.minutes)
         self.reworded_captions = inputs.int_in_range(self.reworded_captions, "reworded_captions", 0, 20)
         self.reworded_turns = inputs.true_or_false(self.reworded_turns, "reworded_turns")
         self.reworded_sides = inputs.true_or_false(self.reworded_sides, "reworded_sides")

@@ -22,9 +22,9 @@ from mld_core.checkpoint import ModelConfig, load_config, load_weights, save_jso
 from mld_core.models.vae import MotionVAE, VAEConfig
 from mld_core.motion import skeleton as sk
 from mld_core.motion.features import FOOT_CONTACT, ROOT_ROT_VEL, ROOT_Y, features_to_joints
-from mld_core.training.common import (Budget, balanced_weights, check_resumed_modules, checked_module_names,
-                                     load_train_state, lr_factor, save_train_state, set_lr, setup_torch,
-                                     trainable_parameters)
+from mld_core.training.common import (Budget, balanced_weights, check_resumed_modules, checked_budget,
+                                     checked_module_names, load_train_state, lr_factor, save_train_state, set_lr,
+                                     setup_torch, trainable_parameters)
 
 ROOT_CHANNELS = slice(ROOT_ROT_VEL.start, ROOT_Y.stop)  # yaw velocity, xz velocity (facing frame), root height
 HORIZONTAL = [0, 2]  # x and z of a joint position (y is up)
@@ -66,6 +66,7 @@ class VAETrainConfig:
     vae: VAEConfig = field(default_factory=VAEConfig)
 
     def __post_init__(self):
+        self.steps, self.minutes = checked_budget(self.steps, self.minutes)
         if isinstance(self.vae, dict):
             self.vae = VAEConfig(**self.vae)
         if self.select_by not in ("mpjpe", "mpjpe_sum"):
