@@ -6,7 +6,8 @@ against real CMU motion's pass rate of the same check.
 
 DIR is a folder written by ``python -m mld_core data prepare cmu-joints``. The three wordings per verb:
   caption: test-split captions that ask for the verb (captions written from the whole trial; the first
-           ``--captions`` of them in id order, val split if the test split has none),
+           ``--captions`` of them in sorted order; from the val split, else the train split, when the test split
+           has none: the row says which),
   command: a plain command ("jump", "crawl", "climb a ladder"),
   user:    a description as a user writes it ("a person jumps over a puddle").
 Each prompt is generated with ``--seeds`` seeds (seeds 0..N-1) at ``--seconds``. The real rate is the check's pass
@@ -63,10 +64,14 @@ def real_rate(data: Path, wins: list[tuple[str, list[str]]], verb: str) -> float
 def prompts_for(data: Path, verb: str, whole: set[str], captions: int) -> tuple[dict, list]:
     """The wordings' prompts for ``verb`` and the real windows its real rate is read on."""
     test = windows_of(data, split_ids(data, "test"), whole, verb)
-    pool = test or windows_of(data, split_ids(data, "val"), whole, verb)
+    for split in ("test", "val", "train"):
+        pool = test if split == "test" else windows_of(data, split_ids(data, split), whole, verb)
+        if pool:
+            break
     chosen = sorted({caps[0] for _, caps in pool})[:captions]
     real = test if len(test) >= MIN_REAL else windows_of(data, split_ids(data, "all"), whole, verb)
-    return {"caption": chosen, "command": [COMMANDS[verb]], "user": [USER[verb]]}, real
+    return {f"caption ({split})" if split != "test" else "caption": chosen, "command": [COMMANDS[verb]],
+            "user": [USER[verb]]}, real
 
 
 def main(argv=None) -> int:
@@ -98,7 +103,7 @@ def main(argv=None) -> int:
     whole = set(whole_trial_windows(args.data))
     rows, takes, start = [], [], time.perf_counter()
     print(f"model {pipe.model_id}; {args.seeds} seeds x {args.seconds:g} s")
-    print(f"{'verb':12} {'wording':8} {'takes':>5} {'pass':>6} {'real':>6} {'ratio':>6}")
+    print(f"{'verb':12} {'wording':15} {'takes':>5} {'pass':>6} {'real':>6} {'ratio':>6}")
     for verb in verbs:
         wordings, real_wins = prompts_for(args.data, verb, whole, args.captions)
         real = real_rate(args.data, real_wins, verb)
@@ -114,7 +119,7 @@ def main(argv=None) -> int:
             ratio = rate / real if real > 0 else float("nan")
             rows.append({"verb": verb, "wording": wording, "prompts": prompts, "takes": len(passed), "pass": rate,
                          "real": real, "real_windows": len(real_wins), "ratio": ratio})
-            print(f"{verb:12} {wording:8} {len(passed):5d} {rate:6.2f} {real:6.2f} {ratio:6.2f}", flush=True)
+            print(f"{verb:12} {wording:15} {len(passed):5d} {rate:6.2f} {real:6.2f} {ratio:6.2f}", flush=True)
     print(f"{len(takes)} takes in {time.perf_counter() - start:.0f} s")
     if args.json:
         args.json.write_text(json.dumps({"model": pipe.model_id, "seeds": args.seeds, "seconds": args.seconds,

@@ -240,3 +240,43 @@ def test_subject_splits_are_stable_and_disjoint():
     a, b = C.subject_splits(subjects), C.subject_splits(list(reversed(subjects)))
     assert a == b and set(a.values()) == {"train", "val", "test"}
     assert 10 <= sum(v == "test" for v in a.values()) <= 20
+
+
+@pytest.mark.parametrize("text, verbs", [
+    ("a person jumps over a puddle", ["jump"]),
+    ("sit down", ["get_low"]),
+    ("a person picks up an object from the ground", ["reach_floor"]),
+    ("a person crawls on hands and knees", ["crawl"]),
+    ("a person does a cartwheel", ["inverted"]),
+    ("a person collapses to the ground", ["on_ground"]),
+    ("someone gets up from the floor", ["stand_up"]),
+    ("a person throws punches", []),  # punching, not throwing
+    ("a person walks duck-footed", []),
+    ("a person dances the lindy hop", []),
+    ("a person walks forward and waves", []),
+])
+def test_verbs_in_reads_what_a_sentence_asks_for(text, verbs):
+    from mld_core.data.verbs import verbs_in
+
+    assert verbs_in(text) == verbs
+
+
+def test_data_summary_counts_hours_per_source_split_and_verb(clips, tmp_path, capsys):
+    from mld_core.data.summary import folder_summary
+
+    assert prepare(source(tmp_path / "cmu", clips), tmp_path / "data", capsys)[0] == 0
+    s = folder_summary(tmp_path / "data")
+    frames = {sp: sum(len(np.load(tmp_path / "data" / "new_joint_vecs" / f"{i}.npy"))
+                      for i in (tmp_path / "data" / f"{sp}.txt").read_text().split()) for sp in ("train", "val", "test")}
+    for split, n in frames.items():
+        assert sum(s["hours"][split].values()) == pytest.approx(n / 20 / 3600)
+    jumps = [i for i in (tmp_path / "data" / "all.txt").read_text().split()
+             if "jumps" in (tmp_path / "data" / "texts" / f"{i}.txt").read_text()]
+    assert len(jumps) == 2  # the hopping window and its mirror
+    assert sum(s["verbs"]["jump"].values()) == pytest.approx(
+        sum(len(np.load(tmp_path / "data" / "new_joint_vecs" / f"{i}.npy")) for i in jumps) / 20 / 3600)
+    assert main(["data", "summary", str(tmp_path / "data")]) == 0
+    out = capsys.readouterr().out
+    assert "| jump |" in out and "| train |" in out
+    assert main(["data", "summary", str(tmp_path / "nothing")]) == 2
+    assert capsys.readouterr().err.startswith("error: ")

@@ -1,5 +1,5 @@
-"""``python -m mld_core data prepare <dataset> SRC --out DIR`` and ``data merge A B ... --out C``: build
-HumanML3D-format training folders."""
+"""``python -m mld_core data prepare <dataset> SRC --out DIR``, ``data merge A B ... --out C`` and ``data summary DIR``:
+build HumanML3D-format training folders and say what they hold."""
 
 from __future__ import annotations
 
@@ -62,6 +62,11 @@ def register(groups) -> None:
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=_run_cmu_joints)
     prepare.set_defaults(func=lambda args: _missing_dataset(prepare))
+    su = groups["data"].add_parser("summary", help="hours per source, checked verb and split of a prepared folder",
+                                   description="Print the hours (mirrored copies included) per source, per split and "
+                                   "per checked verb (the captions that ask for it) of a HumanML3D-format folder.")
+    su.add_argument("folder", type=Path, metavar="DIR", help="a prepared or merged folder")
+    su.set_defaults(func=_run_summary)
     m = groups["data"].add_parser("merge", help="several HumanML3D-format folders as one (splits kept, one Mean/Std)",
                                   description="Merge HumanML3D-format folders: splits kept, ids prefixed with their "
                                   "folder's name where two folders share one, Mean/Std over the merged train split, "
@@ -69,6 +74,19 @@ def register(groups) -> None:
     m.add_argument("sources", nargs="+", type=Path, metavar="DIR", help="two or more prepared folders")
     m.add_argument("--out", required=True, type=Path, metavar="DIR", help="a new (or empty) folder")
     m.set_defaults(func=_run_merge)
+
+
+def _run_summary(args) -> int:
+    from ..cli import UsageError
+    from .summary import folder_summary, summary_table
+
+    if not (args.folder / "train.txt").is_file() or not (args.folder / "new_joint_vecs").is_dir():
+        raise UsageError(f"{args.folder} is not a HumanML3D-format folder (no train.txt or new_joint_vecs/)")
+    try:
+        print(summary_table(folder_summary(args.folder)), end="")
+    except (OSError, ValueError, UnicodeDecodeError) as exc:
+        raise UsageError(f"cannot read {args.folder}: {str(exc).splitlines()[0]}") from None
+    return 0
 
 
 def _run_merge(args) -> int:
