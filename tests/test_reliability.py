@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -168,6 +169,118 @@ def test_pipeline_never_returns_non_finite_joints(pipe):
         pipe("a person walks", guidance_scale=1e30, num_inference_steps=2)
     out = pipe("a person walks", num_inference_steps=1, seed=np.int64(3))  # numpy integers are fine seeds
     assert np.isfinite(out.joints).all() and out.seeds == [3]
+
+
+def _keys(targets, **settings):
+    from mld_core.constraints import PoseKeys
+
+    return PoseKeys(targets, **settings)
+
+
+def _path(frames, points):
+    from mld_core.constraints import RootPath
+
+    return RootPath(frames, np.asarray(points, np.float64))
+
+
+def _constraints(items, **settings):
+    from mld_core.constraints import Constraints
+
+    return Constraints(items, **settings)
+
+
+POSE = [0.0, 0.9, 0.0]
+CONSTRAINT_CASES = [  # made by the user's own code: refused when made, before any generation
+    (lambda: _keys({-3: {"pelvis": POSE}}), "PoseKeys frame must be 0 or more, got -3"),
+    (lambda: _keys({2.5: {"pelvis": POSE}}), "PoseKeys frame must be a whole number"),
+    (lambda: _keys({True: {"pelvis": POSE}}), "PoseKeys frame must be a number"),
+    (lambda: _keys({10: {"nose": POSE}}), "unknown joint 'nose'"),
+    (lambda: _keys({10: {"pelvis": [0.0, math.nan, 0.0]}}), "pelvis y must be a finite number"),
+    (lambda: _keys({10: {"pelvis": [0.0, 0.9]}}), "pelvis must be (x, y, z)"),
+    (lambda: _keys({10: {"pelvis": "0 0.9 0"}}), "pelvis must be (x, y, z)"),
+    (lambda: _keys({10: {}}), "at least one joint"),
+    (lambda: _keys({}), "targets are empty"),
+    (lambda: _keys([(10, {"pelvis": POSE})]), "targets must be a dict"),
+    (lambda: _path([10, 5], [[0, 0], [0, 1]]), "frames must increase, got 10 then 5"),
+    (lambda: _path([0, 10, 10], [[0, 0], [0, 1], [0, 2]]), "frames must increase, got 10 then 10"),
+    (lambda: _path([-5, 10], [[0, 0], [0, 1]]), "RootPath frame must be 0 or more, got -5"),
+    (lambda: _path([0, 10], [[0, 0]]), "one (x, z) per frame (2)"),
+    (lambda: _path([0, 10], [[0, 0], [math.inf, 1]]), "point 2 x must be a finite number"),
+    (lambda: _keys({10: {"pelvis": POSE}}, weight=-1), "PoseKeys weight must be 0 or more"),
+    (lambda: _constraints([{"frame": 10, "joints": {"pelvis": POSE}}]), "item 1 is a dict, not a constraint"),
+    (lambda: _constraints([[10, POSE]]), "item 1 is a list, not a constraint"),
+    (lambda: _constraints(_keys({10: {"pelvis": POSE}})), "takes a list of constraints"),
+    (lambda: _constraints([], steps=-1), "Constraints steps must be between 0"),
+    (lambda: _constraints([], lr=math.nan), "Constraints lr must be a finite number"),
+]
+
+
+@pytest.mark.parametrize("make, words", CONSTRAINT_CASES, ids=[c[1][:40] for c in CONSTRAINT_CASES])
+def test_constraint_objects_check_themselves_when_made(make, words):
+    with pytest.raises(inputs.InputError) as caught:
+        make()
+    assert words in str(caught.value) and "\n" not in str(caught.value)
+
+
+def test_constraints_the_take_cannot_hold_are_refused_before_sampling(pipe, monkeypatch):
+    from mld_core.constraints import Loop
+
+    def no_sampling(*args, **kwargs):
+        raise AssertionError("sampled before the constraints were checked")
+
+    monkeypatch.setattr(pipe, "_condition", no_sampling)
+    with pytest.raises(inputs.InputError, match="reaches frame 40, but the take has 40 frames"):
+        pipe("a person walks", 2.0, constraints=_constraints([_keys({40: {"head": POSE}})]))
+    with pytest.raises(inputs.InputError, match="constraints must be a mld_core.constraints.Constraints"):
+        pipe("a person walks", 2.0, constraints=[Loop()])
+    with pytest.raises(inputs.InputError, match="the same length"):
+        pipe(["a person walks", "a person runs"], [2.0, 3.0], constraints=_constraints([Loop()]))
+
+
+SEQUENCE_CASES = [
+    (dict(segments=[(None, 2.0)]), "sequence segment 1: The prompt must be text, not NoneType"),
+    (dict(segments=[("a person walks", 2.0), ("!!!", 2.0)]), "sequence segment 2: The prompt '!!!' has no words"),
+    (dict(segments=[("a person walks", "three")]), "sequence segment 1: seconds must be a number, got 'three'"),
+    (dict(segments=[("a person walks", None)]), "sequence segment 1: seconds must be a number"),
+    (dict(segments=[("a person walks", math.nan)]), "sequence segment 1: seconds must be a finite number"),
+    (dict(segments=[("a person walks", 2.0, 1)]), "segment 1 must be a (prompt, seconds) pair"),
+    (dict(segments=["a person walks"]), "segment 1 must be a (prompt, seconds) pair"),
+    (dict(segments=None), "a sequence is a list of (prompt, seconds) segments"),
+    (dict(segments="a person walks"), "a sequence is a list of (prompt, seconds) segments"),
+    (dict(segments=[]), "at least one (prompt, seconds) segment"),
+    (dict(overlap_s=-1), "overlap_s must be at least one frame"),
+    (dict(overlap_s=0), "overlap_s must be at least one frame"),
+    (dict(overlap_s=math.nan), "overlap_s must be a finite number"),
+    (dict(overlap_s="half"), "overlap_s must be a number"),
+    (dict(overlap_s=1.5), "overlap_s 1.5 is longer than sequence segment 1 (1 s)"),
+    (dict(segments=[("a person walks", 1.0), ("a person runs", 9.5)]),
+     "sequence segment 2: length (+ 0.5 s overlap) must be between 1 and 9.8 seconds"),
+]
+
+
+@pytest.mark.parametrize("kwargs, words", SEQUENCE_CASES, ids=[c[1][:40] for c in SEQUENCE_CASES])
+def test_a_sequence_is_checked_before_any_segment_is_made(pipe, monkeypatch, kwargs, words):
+    def no_generation(*args, **kwargs):
+        raise AssertionError("a segment was generated before the sequence was checked")
+
+    monkeypatch.setattr(type(pipe), "__call__", no_generation)
+    kwargs = {"segments": [("a person walks", 1.0), ("a person runs", 1.0)], **kwargs}
+    with pytest.raises(inputs.InputError) as caught:
+        pipe.sequence(kwargs.pop("segments"), **kwargs)
+    assert words in str(caught.value) and "\n" not in str(caught.value)
+
+
+@pytest.mark.parametrize("prompts, words", [
+    ([None], "prompt 1 must be text, not NoneType"), ([42], "prompt 1 must be text, not int"),
+    (["a person walks", b"a person runs"], "prompt 2 must be text, not bytes"),
+    (None, "prompts must be a string or a list of strings, got NoneType"),
+    (42, "prompts must be a string or a list of strings, got int"),
+    (b"a person walks", "prompts must be a string or a list of strings, got bytes"),
+], ids=["[None]", "[42]", "[text, bytes]", "None", "42", "bytes"])
+def test_coverage_refuses_what_is_not_a_prompt(pipe, prompts, words):
+    with pytest.raises(inputs.InputError, match=re.escape(words)):
+        pipe.coverage(prompts)
+    assert [c.prompt for c in pipe.coverage(("a person walks", "a person runs"))] == ["a person walks", "a person runs"]
 
 
 # -- the output writer: all or none, and one winner of a race --------------------------------------------------------
