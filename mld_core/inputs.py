@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -345,6 +346,16 @@ def check_output_folder(path: Path, name: str = "--out") -> None:
     blocker = _file_ancestor(path)
     if blocker is not None:
         raise InputError(f"{name} {path}: {blocker} is a file, not a folder")
+
+
+def check_can_create(path: Path, name: str = "--out") -> None:
+    """``path`` can be made or replaced: the nearest existing folder above it lets this user write (not read-only,
+    not locked)."""
+    path = Path(path).expanduser().absolute()
+    folder = next((p for p in path.parents if p.exists()), None)
+    if folder is not None and not os.access(folder, os.W_OK | os.X_OK):
+        raise InputError(f"{name} {path}: cannot write in {folder} (read-only or no permission); choose another "
+                         "folder")
 
 
 def _key(path) -> Path:
