@@ -334,6 +334,98 @@ def test_data_prepare_keeps_what_the_user_added(fixtures, tmp_path, capsys):
             "is a file, not a folder")
 
 
+def _prepare_argv(kind: str, fixtures: Path, root: Path) -> list:
+    """``data prepare bandai`` of the fixture clips, or ``data prepare bvh`` of a folder of two of them."""
+    if kind == "bandai":
+        return ["data", "prepare", "bandai", fixtures / "bandai", "--workers", "1", "--quiet"]
+    src = root / "library"
+    if not src.exists():
+        src.mkdir()
+        for name in ("dataset-2_walk-turn-left_normal_027", "dataset-2_wave-right-hand_normal_026"):
+            shutil.copy(fixtures / "bandai" / f"{name}.bvh", src / f"{name}.bvh")
+    return ["data", "prepare", "bvh", src, "--caption-template", "a person {name}"]
+
+
+def _complete(out: Path) -> bool:
+    """``out`` holds exactly the files its manifest lists."""
+    from mld_core.data.bandai import MANIFEST, written_files
+
+    listed = json.loads((out / MANIFEST).read_text())["files"]
+    return sorted(set(listed) | {MANIFEST}) == written_files(out)
+
+
+@pytest.mark.parametrize("kind", ["bandai", "bvh"])
+@pytest.mark.parametrize("previous", [False, True], ids=["new", "rerun"])
+def test_data_prepare_racing_for_one_out_has_one_winner(fixtures, tmp_path, capsys, monkeypatch, kind, previous):
+    import threading
+
+    from mld_core.data import bandai, bvh_library  # bvh_library imported before bandai.swap_into_place is patched
+
+    argv, out = _prepare_argv(kind, fixtures, tmp_path), tmp_path / "prepared"
+    if previous:  # a rerun over an output of this command
+        assert main([*map(str, argv), "--out", str(out)]) == 0
+    swap, barrier, codes = bandai.swap_into_place, threading.Barrier(2, timeout=120), []
+
+    def swap_together(tmp, path):  # both runs have checked --out and built their folders: now both put theirs there
+        barrier.wait()
+        swap(tmp, path)
+
+    monkeypatch.setattr(bandai, "swap_into_place", swap_together)
+    monkeypatch.setattr(bvh_library, "swap_into_place", swap_together)
+    runs = [threading.Thread(target=lambda: codes.append(main([*map(str, argv), "--out", str(out)])))
+            for _ in range(2)]
+    for r in runs:
+        r.start()
+    for r in runs:
+        r.join()
+    err = capsys.readouterr().err
+    assert sorted(codes) == [0, 2], (codes, err)
+    assert [line for line in err.splitlines() if line.startswith("error:")] == [
+        f"error: --out {out} was written by another run meanwhile; this run kept nothing - choose another folder or "
+        "run it again"], err
+    assert "Traceback" not in err and _complete(out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["prepared"] + (["library"] if kind == "bvh" else []))
+
+
+@pytest.mark.parametrize("kind", ["bandai", "bvh"])
+def test_data_prepare_refuses_an_out_another_run_wrote_meanwhile(fixtures, tmp_path, capsys, monkeypatch, kind):
+    import threading
+
+    from mld_core.data import bandai, bvh_library  # bvh_library imported before bandai.swap_into_place is patched
+
+    argv, out = _prepare_argv(kind, fixtures, tmp_path), tmp_path / "prepared"
+    swap, after = bandai.swap_into_place, {}
+
+    def other_run_first(tmp, path):  # between this run's check of --out and its swap, another run writes --out
+        monkeypatch.setattr(bandai, "swap_into_place", swap)
+        monkeypatch.setattr(bvh_library, "swap_into_place", swap)
+        other = threading.Thread(target=main, args=([*map(str, argv), "--out", str(out)],))
+        other.start()
+        other.join()
+        after.update((k, v) for k, v in snapshot(tmp_path).items() if not k.startswith(Path(tmp).name))
+        swap(tmp, path)
+
+    monkeypatch.setattr(bandai, "swap_into_place", other_run_first)
+    monkeypatch.setattr(bvh_library, "swap_into_place", other_run_first)
+    code = main([*map(str, argv), "--out", str(out)])
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.startswith("error:")]
+    assert code == 2 and len(lines) == 1 and "written by another run meanwhile" in lines[0], err
+    assert "Traceback" not in err and snapshot(tmp_path) == after and _complete(out)  # the other run's, untouched
+
+
+def test_data_prepare_refuses_an_out_it_cannot_write(fixtures, tmp_path, capsys, monkeypatch):
+    import os
+
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    access = os.access  # a folder this user may not write in (the tests may run as root, who may write anywhere)
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: Path(p) != locked and access(p, mode, **kw))
+    for kind in ("bandai", "bvh"):
+        argv = _prepare_argv(kind, fixtures, tmp_path)
+        refused([*argv, "--out", locked / "data"], tmp_path, capsys, f"cannot write in {locked}")
+
+
 def _h3d_folder(root: Path) -> Path:
     (root / "new_joint_vecs").mkdir(parents=True)
     np.save(root / "new_joint_vecs" / "000001.npy", np.zeros((60, 263), np.float32))
