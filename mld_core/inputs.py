@@ -475,16 +475,6 @@ def _check_writable(folder: Path, name: str, path: Path) -> None:
         raise InputError(f"{name} {path}: the folder {folder} cannot be written (no permission); choose another place")
 
 
-def check_can_create(path: Path, name: str = "--out") -> None:
-    """``path`` can be made or replaced: the nearest existing folder above it lets this user write (not read-only,
-    not locked)."""
-    path = Path(path).expanduser().absolute()
-    folder = next((p for p in path.parents if p.exists()), None)
-    if folder is not None and not os.access(folder, os.W_OK | os.X_OK):
-        raise InputError(f"{name} {path}: cannot write in {folder} (read-only or no permission); choose another "
-                         "folder")
-
-
 def _key(path) -> Path:
     return Path(path).expanduser().resolve()
 

@@ -51,6 +51,11 @@ def test_merge_keeps_splits_prefixes_clashes_and_recomputes_stats(tmp_path, caps
     np.testing.assert_allclose(np.load(out / "Std.npy"), std)
     assert json.loads((out / "actions.json").read_text())["clips"] == {"bandai_c1": "walk", "j9": "jump"}
     assert (out / "texts" / "j8.txt").read_text().startswith("a person does j8")
+    # the README says what the folder holds: hours per source and split (30 feature frames a clip at 20 fps)
+    readme = (out / "README.md").read_text()
+    hours = 2 * 30 / 20 / 3600
+    assert f"| train | {hours:.2f} | {hours:.2f} | {2 * hours:.2f} |" in readme and "| jump |" in readme
+    assert not (out / "LICENSE").exists()  # neither source has one
     # refusals: nothing written
     refused(["data", "merge", a, b, "--out", out], tmp_path, capsys, "not empty")
     refused(["data", "merge", a, a, "--out", tmp_path / "m2"], tmp_path, capsys, "same folder twice")
@@ -72,6 +77,17 @@ def test_folders_of_one_name_with_the_same_ids_keep_every_clip(tmp_path, capsys)
         for cid in ids["train"] + ids["test"]:
             assert (out / "new_joint_vecs" / f"{prefix}_{cid}.npy").read_bytes() == \
                 (source / "new_joint_vecs" / f"{cid}.npy").read_bytes()
+
+
+def test_the_sources_licences_travel_with_the_merge(tmp_path):
+    a = _folder(tmp_path / "bandai", {"train": ["c1"]}, 0)
+    b = _folder(tmp_path / "cmu", {"train": ["j1"]}, 1)
+    (a / "LICENSE").write_text("CC BY-NC 4.0 (Bandai Namco Research Inc.)\n")
+    (b / "LICENSE").write_text("mocap.cs.cmu.edu terms\n")
+    assert main(["data", "merge", str(a), str(b), "--out", str(tmp_path / "m")]) == 0
+    text = (tmp_path / "m" / "LICENSE").read_text()
+    assert "CC BY-NC 4.0" in text and "mocap.cs.cmu.edu" in text
+    assert "`LICENSE`" in (tmp_path / "m" / "README.md").read_text()
 
 
 def test_bandai_and_cmu_ids_that_do_not_clash_stay_as_they_are(tmp_path):
@@ -152,7 +168,7 @@ def test_an_output_that_cannot_be_written_is_one_line(tmp_path, capsys, monkeypa
     locked.mkdir()
     access = os.access  # a folder this user may not write in (the tests may run as root, who may write anywhere)
     monkeypatch.setattr(os, "access", lambda p, mode, **kw: Path(p) != locked and access(p, mode, **kw))
-    refused(["data", "merge", a, b, "--out", locked / "m"], tmp_path, capsys, f"cannot write in {locked}")
+    refused(["data", "merge", a, b, "--out", locked / "m"], tmp_path, capsys, f"the folder {locked} cannot be written")
     monkeypatch.undo()
 
     def disk_full(*args, **kwargs):

@@ -366,9 +366,9 @@ def test_data_prepare_racing_for_one_out_has_one_winner(fixtures, tmp_path, caps
         assert main([*map(str, argv), "--out", str(out)]) == 0
     swap, barrier, codes = bandai.swap_into_place, threading.Barrier(2, timeout=120), []
 
-    def swap_together(tmp, path):  # both runs have checked --out and built their folders: now both put theirs there
+    def swap_together(tmp, path, found):  # both runs have checked --out and built their folders: now both swap
         barrier.wait()
-        swap(tmp, path)
+        swap(tmp, path, found)
 
     monkeypatch.setattr(bandai, "swap_into_place", swap_together)
     monkeypatch.setattr(bvh_library, "swap_into_place", swap_together)
@@ -396,14 +396,14 @@ def test_data_prepare_refuses_an_out_another_run_wrote_meanwhile(fixtures, tmp_p
     argv, out = _prepare_argv(kind, fixtures, tmp_path), tmp_path / "prepared"
     swap, after = bandai.swap_into_place, {}
 
-    def other_run_first(tmp, path):  # between this run's check of --out and its swap, another run writes --out
+    def other_run_first(tmp, path, found):  # between this run's check of --out and its swap, another run writes it
         monkeypatch.setattr(bandai, "swap_into_place", swap)
         monkeypatch.setattr(bvh_library, "swap_into_place", swap)
         other = threading.Thread(target=main, args=([*map(str, argv), "--out", str(out)],))
         other.start()
         other.join()
         after.update((k, v) for k, v in snapshot(tmp_path).items() if not k.startswith(Path(tmp).name))
-        swap(tmp, path)
+        swap(tmp, path, found)
 
     monkeypatch.setattr(bandai, "swap_into_place", other_run_first)
     monkeypatch.setattr(bvh_library, "swap_into_place", other_run_first)
@@ -423,7 +423,7 @@ def test_data_prepare_refuses_an_out_it_cannot_write(fixtures, tmp_path, capsys,
     monkeypatch.setattr(os, "access", lambda p, mode, **kw: Path(p) != locked and access(p, mode, **kw))
     for kind in ("bandai", "bvh"):
         argv = _prepare_argv(kind, fixtures, tmp_path)
-        refused([*argv, "--out", locked / "data"], tmp_path, capsys, f"cannot write in {locked}")
+        refused([*argv, "--out", locked / "data"], tmp_path, capsys, f"the folder {locked} cannot be written")
 
 
 def _h3d_folder(root: Path) -> Path:

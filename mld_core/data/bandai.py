@@ -33,7 +33,6 @@ import shutil
 import sys
 import tarfile
 import tempfile
-import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -41,7 +40,7 @@ from typing import Iterator
 import numpy as np
 
 from ..fileio import claim_folder
-from ..inputs import InputError, check_can_create, check_output_folder
+from ..inputs import InputError, check_output_folder
 from ..motion.bvh import BVHError, parse_bvh
 from . import captions as cap
 from .take_checks import implausible
@@ -331,14 +330,6 @@ def _ours(relative: str, listed: set | None) -> bool:
     return relative in _LAYOUT_FILES if not rest else (top in _LAYOUT_DIRS and "/" not in rest)
 
 
-# what check_out found at an --out, per (folder, thread): swap_into_place replaces that and nothing newer
-_FOUND: dict[tuple[str, int], tuple | None] = {}
-
-
-def _slot(out: Path) -> tuple[str, int]:
-    return os.path.abspath(out), threading.get_ident()
-
-
 def _identity(folder: Path) -> tuple | None:
     """Which output ``folder`` holds: None when it is absent or empty, else (device, inode, its manifest's mtime)."""
     try:
@@ -350,18 +341,17 @@ def _identity(folder: Path) -> tuple | None:
     return st.st_dev, st.st_ino, manifest.st_mtime_ns
 
 
-def check_out(out: Path) -> None:
+def check_out(out: Path) -> tuple | None:
     """Refuse an --out that holds anything but a previous output of this command: a rerun replaces only the files
-    that run listed in its manifest, so a file the user added there stops it (nothing is changed). What it found
-    there is remembered for :func:`swap_into_place`."""
+    that run listed in its manifest, so a file the user added there stops it (nothing is changed). Returns what it
+    found there (None: nothing), for :func:`swap_into_place`."""
     _check_out(out)
-    _FOUND[_slot(out)] = _identity(out)
+    return _identity(out)
 
 
 def _check_out(out: Path) -> None:
     try:
-        check_output_folder(out, "--out")
-        check_can_create(out, "--out")
+        check_output_folder(out, "--out", staged_beside=True)
     except InputError as exc:
         raise PrepareError(str(exc)) from None
     if not out.is_dir() or not any(out.iterdir()):
@@ -425,13 +415,11 @@ def _license(original: str | None) -> str:
     return head
 
 
-def swap_into_place(tmp: Path, out: Path) -> None:
-    """Rename the finished folder ``tmp`` to ``out``. Only what :func:`check_out` found there when the run began is
-    replaced: a new or empty ``out`` is claimed only if still new or empty, a previous output (checked again) is
-    moved aside, renamed over and then removed. An output another run put there meanwhile wins: PrepareError, and
-    this run keeps nothing."""
-    slot = _slot(out)
-    found = _FOUND.pop(slot) if slot in _FOUND else _identity(out)
+def swap_into_place(tmp: Path, out: Path, found: tuple | None) -> None:
+    """Rename the finished folder ``tmp`` to ``out``. Only ``found``, what :func:`check_out` found there when the run
+    began, is replaced: a new or empty ``out`` is claimed only if still new or empty, a previous output (checked
+    again) is moved aside, renamed over and then removed. An output another run put there meanwhile wins:
+    PrepareError, and this run keeps nothing."""
     _check_out(out)
     try:
         if found is None:
@@ -482,7 +470,7 @@ def prepare_bandai(src, out, *, workers: int = 2, mirror: bool = True, progress:
     src = Path(src).expanduser()
     out = Path(out).expanduser().absolute()
     kind = check_source(src)
-    check_out(out)
+    found = check_out(out)
     try:
         if out.resolve().is_relative_to(src.resolve()) and kind == "folder":
             raise PrepareError(f"--out {out} must not be inside SRC {src}")
@@ -590,7 +578,7 @@ def prepare_bandai(src, out, *, workers: int = 2, mirror: bool = True, progress:
         manifest = {**summary, "files": written_files(tmp)}  # what a rerun may replace, and nothing else
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
 
-        swap_into_place(tmp, out)
+        swap_into_place(tmp, out, found)
         summary["out"] = str(out)
         return summary
     finally:

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..fileio import claim_folder
-from ..inputs import InputError, check_can_create, check_output_folder
+from ..inputs import InputError, check_output_folder
 from ..motion import features as F
 from ..motion.skeleton import FEATURE_DIM
 
@@ -205,10 +205,9 @@ def merge(sources, out) -> dict:
     paths = [Path(s).expanduser() for s in sources]
     out = Path(out).expanduser().absolute()
     check_sources(paths)
-    check_output_folder(out, "--out")
+    check_output_folder(out, "--out", staged_beside=True)
     if out.exists() and any(out.iterdir()):
         raise InputError(f"--out {out} is not empty; choose a new or empty folder - nothing was changed")
-    check_can_create(out, "--out")
     folders = [read_source(p) for p in paths]
     for folder, prefix in zip(folders, prefixes(paths)):
         folder.prefix = prefix
@@ -272,6 +271,32 @@ def _write(tmp: Path, rows, folders: list[Source], mean, std) -> None:
     (tmp / MANIFEST).write_text(json.dumps({"written_by": "mld_core data merge",
                                             "sources": [str(s.path) for s in folders]}, indent=1) + "\n",
                                 encoding="utf-8")
+    licences = _licences(folders)
+    if licences:
+        (tmp / "LICENSE").write_text(licences, encoding="utf-8")
+    (tmp / "README.md").write_text(_readme(tmp, folders, bool(licences)), encoding="utf-8")
+
+
+def _licences(folders: list[Source]) -> str:
+    """The sources' LICENSE files, one after the other under their folder's name ("" when none has one)."""
+    parts = []
+    for folder in folders:
+        path = folder.path / "LICENSE"
+        if path.is_file():
+            text = path.read_text(encoding="utf-8", errors="replace").strip()
+            parts.append(f"## {folder.prefix or folder.path.name}\n\n{text}\n")
+    return ("# Licences of the merged folders\n\n" + "\n".join(parts)) if parts else ""
+
+
+def _readme(tmp: Path, folders: list[Source], licences: bool) -> str:
+    from .summary import folder_summary, summary_table
+
+    names = ", ".join(f"`{f.path.name}`" for f in folders)
+    return (f"# A merged HumanML3D-format folder\n\nWritten by `python -m mld_core data merge` from {names}: splits "
+            f"kept, Mean/Std over the merged train split, each clip's source in `provenance.json`."
+            + (" Each source's licence in `LICENSE`." if licences else "")
+            + "\n\nHours (mirrored copies included) per source and split, and per checked verb (the captions that ask "
+            "for it):\n\n" + summary_table(folder_summary(tmp)))
 
 
 def _merged_actions(rows, folders: list[Source]) -> dict | None:
