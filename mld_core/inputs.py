@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -345,6 +346,16 @@ def check_output_folder(path: Path, name: str = "--out") -> None:
     blocker = _file_ancestor(path)
     if blocker is not None:
         raise InputError(f"{name} {path}: {blocker} is a file, not a folder")
+
+
+def check_writable_folder(path: Path, name: str = "--out") -> None:
+    """The folder ``path`` (or, when it is still to be made, the nearest folder above it that exists) must take new
+    files: refused when it is read-only (permissions, a read-only mount, an immutable folder)."""
+    folder = Path(path).expanduser().absolute()
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if folder.is_dir() and not os.access(folder, os.W_OK | os.X_OK):
+        raise InputError(f"{name} {path}: cannot write into {folder} (read-only); choose a folder you can write to")
 
 
 def _key(path) -> Path:
