@@ -142,17 +142,18 @@ class ExportSettings:
 
 @dataclass(frozen=True)
 class ExportFile:
-    """One file an export writes: its format, path and the takes (Action names) it holds, in order."""
+    """One file an export writes: its format, path and the takes (Action names) it holds, in order; ``shared``:
+    the one file of its format holding every take."""
 
     format: str
     path: Path
     takes: tuple
+    shared: bool = False
 
     @property
     def label(self) -> str:
         """How messages name it: ``--export fbx (walks_s0)`` or ``--export glb (every take)``."""
-        held = self.takes[0] if len(self.takes) == 1 else "every take"
-        return f"--export {self.format} ({held})"
+        return f"--export {self.format} ({'every take' if self.shared else self.takes[0]})"
 
 
 def file_stem(take: str) -> str:
@@ -169,7 +170,7 @@ def export_files(folder: str | Path, stem: str, takes: Sequence[str], settings: 
     for fmt in settings.formats:
         ext = EXTENSIONS[fmt]
         if settings.one_file and fmt in ONE_FILE_FORMATS:
-            files.append(ExportFile(fmt, folder / f"{stem}{ext}", tuple(takes)))
+            files.append(ExportFile(fmt, folder / f"{stem}{ext}", tuple(takes), shared=True))
         else:
             files += [ExportFile(fmt, folder / f"{file_stem(t)}{ext}", (t,)) for t in takes]
     return files
@@ -265,8 +266,9 @@ def export_pose(rig: RigRest, out: ExportRig, pose: np.ndarray, hips: int, up: n
     cm = 100.0 * metres_per_unit
     report = {"frames": int(len(pose)), "fps": float(fps), "hips_travel_cm": round(
         rm.ground_travel(pose[:, hips, :3, 3], up) * cm, 2)}
-    if loop:
-        pose, report["seam"] = _closed_loop(pose, parents, top, hips, up, fps, motion.smooth_s, cm)
+    if loop:  # judged from the root the engine sees: turning with the take only when the turn is exported with it
+        turning = motion.yaw or motion.mode == "object"
+        pose, report["seam"] = _closed_loop(pose, hips, up, fps, motion.smooth_s, cm, turning)
     frames = rm.root_frames(pose[:, hips], up, fps, yaw=motion.yaw, loop=loop, smooth_s=motion.smooth_s)
     split = rm.split_root(pose[:, top], frames, motion.mode)
     local = local_matrices(pose, parents)  # (T, B, 4, 4) parent-relative
@@ -294,20 +296,17 @@ def _rest_relative(out: ExportRig) -> np.ndarray:
     return rel
 
 
-def _closed_loop(pose, parents, top, hips, up, fps, smooth_s, cm) -> tuple[np.ndarray, dict]:
-    """The pose with its last frame equal to its first relative to the turning root, and the seam's report."""
-    frames = rm.root_frames(pose[:, hips], up, fps, yaw=True, loop=True, smooth_s=smooth_s)
+def _closed_loop(pose, hips, up, fps, smooth_s, cm, turning: bool) -> tuple[np.ndarray, dict]:
+    """The pose with its last frame equal to its first relative to the root (``turning``: a root that turns with
+    the take; otherwise a loop's turn is spread over it, so its ends face alike), each joint moved by at most its
+    own gap; and the seam's report."""
+    frames = rm.root_frames(pose[:, hips], up, fps, yaw=turning, loop=True, smooth_s=smooth_s)
     seen = rm.in_root_frame(frames, pose)
     gap_before = rm.seam_gap(seen[..., :3, 3], seen[..., :3, :3])
-    local = local_matrices(pose, parents)
-    rest = np.flatnonzero(parents >= 0)
-    closed_top, closed_rest = rm.close_loop(seen[:, top], local[:, rest])
-    local[:, top] = frames[:, None] @ closed_top
-    local[:, rest] = closed_rest
-    closed = chain(local, parents)
+    closed = frames[:, None] @ rm.close_loop(seen)
     seen = rm.in_root_frame(frames, closed)
     gap_after = rm.seam_gap(seen[..., :3, 3], seen[..., :3, :3])
-    heading = rm.level_heading(frames[:, :3, :3], up)
+    heading = rm.level_heading(pose[:, hips, :3, :3], up)
     travel = rm.ground_travel(frames[:, :3, 3], up)
     return closed, {"gap_cm": round(gap_before[0] * cm, 3), "gap_deg": round(gap_before[1], 3),
                     "closed_gap_cm": round(gap_after[0] * cm, 4), "closed_gap_deg": round(gap_after[1], 4),

@@ -200,20 +200,17 @@ def _blend_rotations(rot: np.ndarray, weights: np.ndarray) -> np.ndarray:
     return rot @ turn
 
 
-def close_loop(top: np.ndarray, local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def close_loop(matrices: np.ndarray) -> np.ndarray:
     """A looped take's last frame made equal to its first, the difference spread evenly over the take.
 
-    top: (T, K, 4, 4) the top bones in the root's frame; local: (T, B, 4, 4) every other bone's local (parent-
-    relative) matrix. Returns both corrected: frame 0 unchanged, frame T-1 equal to frame 0."""
-    weights = np.linspace(0.0, 1.0, len(top))
-    out = []
-    for m in (np.asarray(top, np.float64), np.asarray(local, np.float64)):
-        m = m.copy()
-        if m.shape[1]:
-            m[..., :3, :3] = _blend_rotations(m[..., :3, :3], weights)
-            m[..., :3, 3] += weights[:, None, None] * (m[0, :, :3, 3] - m[-1, :, :3, 3])[None]
-        out.append(m)
-    return out[0], out[1]
+    matrices: (T, B, 4, 4) every bone seen from the root (armature-space poses in the root's frame), so each joint
+    moves by at most its own gap at the seam. Frame 0 is unchanged, frame T-1 becomes frame 0."""
+    m = np.array(matrices, np.float64, copy=True)
+    weights = np.linspace(0.0, 1.0, len(m))
+    if m.shape[1]:
+        m[..., :3, :3] = _blend_rotations(m[..., :3, :3], weights)
+        m[..., :3, 3] += weights[:, None, None] * (m[0, :, :3, 3] - m[-1, :, :3, 3])[None]
+    return m
 
 
 def seam_gap(heads: np.ndarray, rotations: np.ndarray) -> tuple[float, float]:
