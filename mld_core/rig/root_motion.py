@@ -217,11 +217,12 @@ def seam_gap(heads: np.ndarray, rotations: np.ndarray) -> tuple[float, float]:
     """(largest head distance, largest rotation angle in degrees) between a take's last and first frames.
 
     heads: (T, B, 3); rotations: (T, B, 3, 3), both in the frame the seam is judged in."""
-    distance = float(np.linalg.norm(heads[-1] - heads[0], axis=-1).max()) if heads.shape[1] else 0.0
-    delta = np.swapaxes(rotations[-1], -1, -2) @ rotations[0]
-    cos = np.clip((np.trace(delta, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
-    angle = float(np.degrees(np.arccos(cos)).max()) if rotations.shape[1] else 0.0
-    return distance, angle
+    if not heads.shape[1]:
+        return 0.0, 0.0
+    distance = float(np.linalg.norm(heads[-1] - heads[0], axis=-1).max())
+    q = matrix_to_quat(np.swapaxes(rotations[-1], -1, -2) @ rotations[0])  # (B, 4): the angle from its quaternion,
+    angle = 2.0 * np.arctan2(np.linalg.norm(q[:, 1:], axis=-1), np.abs(q[:, 0]))  # not arccos (exact near 0)
+    return distance, float(np.degrees(angle).max())
 
 
 def quaternions(rotations: np.ndarray) -> np.ndarray:
