@@ -427,38 +427,14 @@ def checked_inputs(args, addon) -> _Inputs:
         inputs.check_output_folder(bvh_dir, "--bvh-dir")
     import bpy
 
-    planned = importlib.import_module(f"{addon.__name__}.worker.export_plan").planned_names(
-        requests, [a.name for a in bpy.data.actions])
-    export = export_files(args, addon, paths, planned, bvh_dir)
+    export_plan = importlib.import_module(f"{addon.__name__}.worker.export_plan")
+    planned = export_plan.planned_names(requests, [a.name for a in bpy.data.actions])  # as the takes will be named
+    export = export_plan.batch_plan(args, paths, OPTION, bvh_dir, planned)  # --export's files, checked
     missing = env.missing_modules()
     if missing:
         raise BatchError(env.dependency_message(missing))
     retarget, bone_map = retarget_inputs(args, addon)
     return _Inputs(lines, requests, model_dir, paths, bvh_dir, retarget, bone_map, export)
-
-
-def export_files(args, addon, paths: dict, names: list, bvh_dir: Path | None):
-    """--export's files for the takes ``names``, checked with every other output and input (None without it)."""
-    plan = importlib.import_module(f"{addon.__name__}.worker.export_plan")
-    bvh = {f"--bvh-dir file ({n})": bvh_dir / f"{n}.bvh" for n in names} if bvh_dir is not None else {}
-    return plan.plan(args, paths, names, OPTION, bvh)
-
-
-def engine_export(addon, plan, obj, bone_map, scene, names: list):
-    """A function staging --export's files in an OutputSet and returning the manifest's "export" section."""
-    import bpy
-
-    export_takes = importlib.import_module(f"{addon.__name__}.scene.export_takes")
-    if bone_map is None:
-        bone_map = importlib.import_module(f"{addon.__name__}.scene.key_takes").bone_map_of(obj)
-    actions = [bpy.data.actions[name] for name in names]
-
-    def stage(outputs) -> dict:
-        section = export_takes.export_takes(obj, actions, plan.files, plan.settings, outputs, bone_map=bone_map,
-                                            scene=scene)
-        return {"folder": str(plan.folder), **section}
-
-    return stage
 
 
 def run(args) -> int:
@@ -480,10 +456,12 @@ def run(args) -> int:
     print(f"model {getattr(pipe, 'model_id', '?')} loaded in {load_s:.2f} s")
     records, bvh_takes = key_every_line(args, addon, inp, pipe, scene, obj)
     export = None
-    if inp.export is not None:  # the files again under the takes' real names, then written with the others
+    if inp.export is not None:  # the files checked again under the takes' real names, then written with the others
         names = [record["name"] for record in records]
-        plan = export_files(args, addon, inp.paths, names, inp.bvh_dir)
-        export = engine_export(addon, plan, obj, inp.bone_map, scene, names)
+        plan = importlib.import_module(f"{addon.__name__}.worker.export_plan").batch_plan(
+            args, inp.paths, OPTION, inp.bvh_dir, names)
+        export = importlib.import_module(f"{addon.__name__}.scene.export_takes").stager(
+            obj, names, plan, inp.bone_map, scene)
     # 4. Outputs: the .blend, the manifest, the preview, the BVHs: staged, then put in place together.
     env = importlib.import_module(f"{addon.__name__}.env")
     manifest = _manifest(args, inp.paths, obj, map_source, pipe, inp.model_dir, inp.retarget, scene, records, env,

@@ -84,14 +84,16 @@ def ensure_exporters(settings: ee.ExportSettings) -> None:
 # -- reading the takes ------------------------------------------------------------------------------------------
 def sample_action(obj, action, scene) -> tuple[int, np.ndarray]:
     """(first frame, (T, B, 4, 4) armature-space matrices of every bone) over the Action's frame range, played on
-    ``obj``; the armature's own Action, slot and the scene's frame are put back."""
+    ``obj`` alone (its NLA tracks muted meanwhile); the armature's own Action, slot, NLA and the scene's frame are
+    put back."""
     ad = obj.animation_data or obj.animation_data_create()
-    before = (ad.action, getattr(ad, "action_slot", None), scene.frame_current)
+    before = (ad.action, getattr(ad, "action_slot", None), scene.frame_current, ad.use_nla)
     start, end = (int(round(v)) for v in action.frame_range)
     bones = obj.pose.bones
     flat = np.empty(len(bones) * 16, np.float32)
     pose = np.empty((end - start + 1, len(bones), 4, 4))
     try:
+        ad.use_nla = False
         write_action.assign_action(obj, action)
         for i, frame in enumerate(range(start, end + 1)):
             scene.frame_set(frame)
@@ -101,6 +103,7 @@ def sample_action(obj, action, scene) -> tuple[int, np.ndarray]:
         ad.action = before[0]
         if before[0] is not None and before[1] is not None and hasattr(ad, "action_slot"):
             ad.action_slot = before[1]
+        ad.use_nla = before[3]
         scene.frame_set(before[2])
     return start, pose
 
@@ -335,6 +338,22 @@ def take_keys(obj, actions, rig, out: ee.ExportRig, settings: ee.ExportSettings,
         keys[action.name] = (ee.pose_keys(out.names, take.bases, start, fps), start)
         reports[action.name] = take.report
     return keys, reports
+
+
+def stager(obj, names, plan, bone_map, scene):
+    """For the batch: a function staging ``plan``'s files (``worker.export_plan.ExportPlan``) for the Actions
+    ``names`` of ``obj`` in an OutputSet, returning the manifest's ``export`` section. ``bone_map``: the batch's
+    --bone-map, else (None) the armature's own."""
+    from . import key_takes
+
+    bone_map = bone_map if bone_map is not None else key_takes.bone_map_of(obj)
+    actions = [bpy.data.actions[name] for name in names]
+
+    def stage(outputs) -> dict:
+        section = export_takes(obj, actions, plan.files, plan.settings, outputs, bone_map=bone_map, scene=scene)
+        return {"folder": str(plan.folder), **section}
+
+    return stage
 
 
 def _stage(outputs, f, export: _ExportScene, takes: list) -> dict:

@@ -103,6 +103,8 @@ def do_export_takes(obj, actions, folder: str, settings) -> tuple[str, str]:
         return "ERROR", str(exc).replace("pass --overwrite to replace it", "tick Replace Files to replace it")
     except OSError as exc:
         return "ERROR", f"Could not write into {folder}: {exc.strerror or exc}"
+    except RuntimeError as exc:  # an exporter that did not finish: nothing was put in place
+        return "ERROR", str(exc).strip().splitlines()[-1]
     takes = f"{len(actions)} take{'s' if len(actions) != 1 else ''}"
     return "INFO", f"Exported {takes} to {len(files)} file{'s' if len(files) != 1 else ''} in {target}"
 

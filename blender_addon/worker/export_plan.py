@@ -84,3 +84,13 @@ def plan(args, paths: dict, take_names, options: dict, bvh_files: dict | None = 
                                                      ("--bone-map", args.bone_map)) if value}
     ee.check_export_files(files, others, sources, overwrite=args.overwrite)
     return ExportPlan(settings, folder, tuple(files))
+
+
+def batch_plan(args, paths: dict, options: dict, bvh_dir: Path | None, names) -> ExportPlan | None:
+    """The batch's export plan for the takes ``names`` (None without --export), checked with its ``paths``
+    (``options`` names their flags) and the ``bvh_dir`` files the takes get."""
+    if not args.export and not any((args.export_dir, args.one_file, args.root_motion, args.root_yaw,
+                                    args.bone_names)):
+        return None
+    bvh = {f"--bvh-dir file ({n})": bvh_dir / f"{n}.bvh" for n in names} if bvh_dir is not None else {}
+    return plan(args, paths, names, options, bvh)
