@@ -441,7 +441,7 @@ def check_outputs(outputs: dict[str, Path], inputs: dict[str, Path] | None = Non
             raise InputError(f"{name} {path}: {blocker} is a file, not a folder")
         if path.exists() and not overwrite:
             raise InputError(f"{path} exists; pass --overwrite to replace it")
-        _check_writable(path.expanduser().absolute().parent, name, path)
+        check_writable_folder(path.expanduser().absolute().parent, name, path)
 
 
 def check_output_folder(path: Path, name: str = "--out", files: dict[str, Path] | None = None,
