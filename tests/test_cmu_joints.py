@@ -247,6 +247,8 @@ def test_subject_splits_are_stable_and_disjoint():
     ("sit down", ["get_low"]),
     ("a person picks up an object from the ground", ["reach_floor"]),
     ("a person crawls on hands and knees", ["crawl"]),
+    ("A human performs front crawl movements with her arms.", []),  # swimming
+    ("a person mimes front crawl swimming", []),
     ("a person does a cartwheel", ["inverted"]),
     ("a person collapses to the ground", ["on_ground"]),
     ("someone gets up from the floor", ["stand_up"]),

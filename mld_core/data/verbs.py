@@ -14,7 +14,7 @@ VERB_PATTERNS = {
     "jump": r"\b(jump\w*|(?<!lindy )(?<!hip )hops?|hopp\w*|leap\w*|hopscotch|bounc\w+ on)\b",
     "get_low": r"\b(sit|sits|sitting|sat|squat\w*|kneel\w*|knelt|crouch\w*|ducks?(?![ -]foot)|ducking)\b",
     "on_ground": r"\b(lie|lies|lying|lay|lays|laying|fall|falls|falling|fell|collaps\w*|on the (floor|ground))\b",
-    "crawl": r"\b(crawl\w*)\b",
+    "crawl": r"\b(?<!front )(crawl\w*)\b(?! (movements|swimming|stroke))",
     "reach_floor": r"\b(pick\w* (up|\w+ up)|picks? up|scoop\w*)\b",
     "inverted": r"\b(cartwheel\w*|handstand\w*|hand ?spring|back ?flip\w*|flip\w*|somersault\w*|summersult)\b",
     "stand_up": r"\b(stand\w* up|get\w* up|gets up|got up|rises|rising|stands back up)\b",
