@@ -332,7 +332,7 @@ def test_a_looped_wave_still_waves():  # the bundled model
     out = pipe("a person waves the right hand", seconds=3, seed=0, num_variants=8, constraints=Constraints([Loop()]))
     assert all(met for row in out.residuals for _, _, met in row)
     # smoothing the features themselves, as a run cycle's seam needs, flattened the wave: 2 of 8 waved on v3.6 (6 of 8
-    # with only the change kept smooth, for takes in place; /work/proto/s31/loop_probe.py)
+    # with only the change kept smooth, for takes in place: docs/control.md)
     assert sum(physical.passes(j[:n], "wave-right-hand") for j, n in zip(out.joints, out.lengths)) >= 4
 
 
