@@ -14,7 +14,7 @@ Each prompt is generated with ``--seeds`` seeds (seeds 0..N-1) at ``--seconds``.
 rate on the real test windows of that verb (all splits when the test split has fewer than 8). Prints one row per verb
 and wording: takes, pass rate, the real rate and their ratio (the target is >= 0.8); ``--json`` writes every take's
 prompt, seed and pass. A measurement, not a test: it asserts nothing. The Bandai contents' table is
-``scripts/side_accuracy.py``.
+``research/side_accuracy.py``.
 """
 
 from __future__ import annotations

@@ -316,7 +316,7 @@ def test_stepped_paths_and_loops_keep_their_feet_planted():  # the bundled model
                                          ("a person runs forward", 2, Loop(), 0.08)):
         out = pipe(prompt, seconds=seconds, seed=0, num_variants=8, constraints=Constraints([item]))
         assert all(met for row in out.residuals for _, _, met in row)
-        # the feet's slide in the latent stage's cost (Constraints.slide_weight; scripts/directed_skating.py): on
+        # the feet's slide in the latent stage's cost (Constraints.slide_weight; research/directed_skating.py): on
         # v3.4, seeds 0-7, the bend skated 0.085 and the walk cycle 0.157 at weight 0.03, 0.006 and 0.054 at 1.0; and the
         # toes near the floor held in the feature stage (Constraints.planted_toe_height_m): on v3.6 the run cycle
         # skated 0.128 with the contact channels alone, 0.064 with them (real runs 0.07)

@@ -1,7 +1,7 @@
 """How well each verb's physical check reads real motion: hit rate on real CMU windows whose captions ask for that verb,
 false-alarm rate on windows whose captions ask for none of the checked verbs (and on plain walks on flat ground).
 
-    python scripts/verb_checks.py --data DIR [--values] [--json FILE]
+    python research/verb_checks.py --data DIR [--values] [--json FILE]
 
 DIR is a folder written by ``python -m mld_core data prepare cmu-joints``. Only windows captioned from the whole
 trial are read (a long trial's windows captioned by the detectors themselves would be circular), mirrored copies
