@@ -1,12 +1,12 @@
-"""The repository's text speaks to users: no machine's own folders, no numbered work periods, no dead citations.
+"""The repository's text speaks to users: no machine's folders, no numbered references to past work, no dead links.
 
 Every tracked text file (*.md, *.py, *.json, *.toml, *.txt, *.sh) is read. Three rules:
 
 1. no absolute path outside the repository: a user's or the superuser's home, a work or temporary folder at the
    file system's root, or a Windows drive (a command in the docs runs from a fresh clone: paths are relative to the
    repository or placeholders such as DIR);
-2. no numbered work period ("session" or "issue" followed by its number, a two-digit "s" tag, "work period"):
-   history is dated, in CHANGELOG.md;
+2. no numbered reference to when a piece of work was done ("session" or "issue" followed by its number, a
+   two-digit "s" tag, the phrase for such a period): history is dated, in CHANGELOG.md;
 3. every ``scripts/``, ``research/`` or ``docs/`` path a file cites exists, and every relative Markdown link of a
    document points at a file of the repository.
 
