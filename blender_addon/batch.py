@@ -28,6 +28,13 @@ Keying a user's rig (retargeted through a bone map, see docs/retarget.md)::
 Blender's own importer (its clip is kept as an Action with a fake user, not assigned). The bone map is
 ``--bone-map`` (a JSON file saved by the panel's Save Map...), else the detected one; a map without the
 required bones is bad input (exit 2, nothing written).
+
+Into a game engine (docs/game_engines.md): the takes also as FBX / GLB / BVH files, with the travel in place or on a
+root bone and engine bone names, listed with their sha256 in the manifest::
+
+    python blender_addon/batch.py --prompts prompts.txt --out takes.blend --export fbx --export glb \
+        [--export-dir DIR] [--one-file] [--root-motion object|in-place|root-bone] [--root-yaw] \
+        [--bone-names canonical|mixamo|ue5|unity]
 """
 
 from __future__ import annotations
@@ -122,6 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="effectors (default): hands and feet land where the take puts them; directions: every limb "
                     "points as in the take, feet may sink")
     rt.add_argument("--nla", action="store_true", help="put each take on its own NLA track instead of assigning it")
+    importlib.import_module(f"{_addon_package().__name__}.worker.export_plan").add_arguments(parser)
     return parser
 
 
@@ -390,6 +398,7 @@ class _Inputs:
     bvh_dir: Path | None
     retarget: object  # mld_core.rig.keying.RetargetSettings
     bone_map: object  # a BoneMap from --bone-map, or None
+    export: object = None  # worker.export_plan.ExportPlan for --export (the files under the takes' planned names)
 
 
 def checked_inputs(args, addon) -> _Inputs:
@@ -418,11 +427,16 @@ def checked_inputs(args, addon) -> _Inputs:
     paths = output_paths(args)
     check_outputs(args, paths)
     bvh_dir = Path(args.bvh_dir) if args.bvh_dir else None
+    import bpy
+
+    export_plan = importlib.import_module(f"{addon.__name__}.worker.export_plan")
+    planned = export_plan.planned_names(requests, [a.name for a in bpy.data.actions])  # as the takes will be named
+    export = export_plan.batch_plan(args, paths, OPTION, bvh_dir, planned)  # --export's files, checked
     missing = env.missing_modules()
     if missing:
         raise BatchError(env.dependency_message(missing))
     retarget, bone_map = retarget_inputs(args, addon)
-    return _Inputs(lines, requests, model_dir, paths, bvh_dir, retarget, bone_map)
+    return _Inputs(lines, requests, model_dir, paths, bvh_dir, retarget, bone_map, export)
 
 
 def run(args) -> int:
@@ -443,11 +457,18 @@ def run(args) -> int:
                          "(make one with `python -m mld_core train draft`)")
     print(f"model {getattr(pipe, 'model_id', '?')} loaded in {load_s:.2f} s")
     records, bvh_takes = key_every_line(args, addon, inp, pipe, scene, obj)
+    export = None
+    if inp.export is not None:  # the files checked again under the takes' real names, then written with the others
+        names = [record["name"] for record in records]
+        plan = importlib.import_module(f"{addon.__name__}.worker.export_plan").batch_plan(
+            args, inp.paths, OPTION, inp.bvh_dir, names)
+        export = importlib.import_module(f"{addon.__name__}.scene.export_takes").stager(
+            obj, names, plan, inp.bone_map, scene)
     # 4. Outputs: the .blend, the manifest, the preview, the BVHs: staged, then put in place together.
     env = importlib.import_module(f"{addon.__name__}.env")
     manifest = _manifest(args, inp.paths, obj, map_source, pipe, inp.model_dir, inp.retarget, scene, records, env,
                          load_s, t_start)
-    write_outputs(args, addon, inp.paths, scene, obj, manifest, bvh_takes, t_start)
+    write_outputs(args, addon, inp.paths, scene, obj, manifest, bvh_takes, t_start, export)
     print(f"wrote {inp.paths['blend']} ({len(records)} take{'s' if len(records) != 1 else ''}) and "
           f"{inp.paths['manifest']}")
     return EXIT_OK
@@ -499,8 +520,10 @@ def key_every_line(args, addon, inp: _Inputs, pipe, scene, obj) -> tuple[list, l
     return records, bvh_takes
 
 
-def write_outputs(args, addon, paths: dict, scene, obj, manifest: dict, bvh_takes: list, t_start: float) -> None:
-    """4. Every output staged beside its target, then all renamed together (none on any failure)."""
+def write_outputs(args, addon, paths: dict, scene, obj, manifest: dict, bvh_takes: list, t_start: float,
+                  export=None) -> None:
+    """4. Every output staged beside its target, then all renamed together (none on any failure); ``export``
+    stages --export's files and gives the manifest's "export" section."""
     with OutputSet(overwrite=args.overwrite) as outputs:
         outputs.stage(paths["blend"], save_blend_copy, suffix=".blend")
         for bvh_path, take in bvh_takes:
@@ -512,6 +535,10 @@ def write_outputs(args, addon, paths: dict, scene, obj, manifest: dict, bvh_take
             manifest["preview"] = str(paths["preview"])
             manifest["timing"]["preview_s"] = round(time.perf_counter() - t0, 4)
             print(f"preview {paths['preview']} in {manifest['timing']['preview_s']:.2f} s")
+        if export is not None:
+            t0 = time.perf_counter()
+            manifest["export"] = export(outputs)
+            manifest["timing"]["export_s"] = round(time.perf_counter() - t0, 4)
         manifest["timing"]["total_s"] = round(time.perf_counter() - t_start, 4)
         text = json.dumps(manifest, indent=2) + "\n"
         outputs.stage(paths["manifest"], lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))

@@ -3,7 +3,10 @@ a loop. The pipeline refines its sampled latent, then the decoded features, agai
 ``MLDPipeline.__call__``, ``MLDPipeline.meet_constraints``); the free path never touches this module.
 
 Joints are the pipeline's output frame: metres, Y up, the root starting at the origin facing +Z. Frames are model
-frames (20 fps); files with another fps are converted when read (:func:`read_keys`, :func:`read_path`).
+frames (20 fps); files with another fps are converted when read (:func:`read_keys`, :func:`read_path`). Each
+constraint object checks itself when made (frames whole and 0 or more, coordinates finite, joints known) and raises
+:class:`~mld_core.inputs.InputError`; frames beyond the take are refused once its length is known
+(:meth:`Constraints.check_frames`).
 """
 
 from __future__ import annotations
@@ -11,18 +14,62 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 import torch
 
-from mld_core.inputs import InputError, check_prompt, finite_number, whole_number
+from mld_core.inputs import InputError, check_prompt, finite_number, int_in_range, true_or_false, whole_number
 from mld_core.motion import skeleton as sk
 from mld_core.motion.features import FOOT_CONTACT, ROOT_LIN_VEL, features_to_joints
 from mld_core.motion.repair import FOOT_JOINTS
 from mld_core.motion.skeleton import JOINT_NAMES
 
 JOINT_INDEX = {name: i for i, name in enumerate(JOINT_NAMES)}
+
+
+# -- checks each constraint makes on itself ---------------------------------------------------------------------
+def frame_number(value, what: str) -> int:
+    """A model frame: a whole number, 0 or more."""
+    frame = whole_number(value, what)
+    if frame < 0:
+        raise InputError(f"{what} must be 0 or more, got {frame}")
+    return frame
+
+
+def _not_negative(value, what: str) -> float:
+    number = finite_number(value, what)
+    if number < 0:
+        raise InputError(f"{what} must be 0 or more, got {number:g}")
+    return number
+
+
+def _length(value) -> int | None:
+    """How many items a list, tuple or array holds; None for anything else (text, a dict, a number)."""
+    if isinstance(value, (str, bytes, Mapping)):
+        return None
+    try:
+        return len(value)
+    except TypeError:
+        return None
+
+
+def brief(value) -> str:
+    """``value`` for a one-line message: its repr on one line, at most 60 characters."""
+    text = " ".join(repr(value).split())
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _point(value, size: int, what: str, shape: str) -> list[float]:
+    """``size`` finite coordinates (a list, tuple or array)."""
+    if _length(value) != size:
+        raise InputError(f"{what} must be {shape} in metres, got {brief(value)}")
+    return [finite_number(v, f"{what} {axis}") for v, axis in zip(value, "xyz" if size == 3 else "xz")]
+
+
+def _check_weights(item) -> None:
+    item.weight = _not_negative(item.weight, f"{type(item).__name__} weight")
+    item.tolerance_m = _not_negative(item.tolerance_m, f"{type(item).__name__} tolerance_m")
 
 
 @dataclass
@@ -32,6 +79,25 @@ class PoseKeys:
     targets: dict[int, dict[str, Sequence[float]]]
     weight: float = 1.0
     tolerance_m: float = 0.03  # a residual above this is reported as not met
+
+    def __post_init__(self):
+        if not isinstance(self.targets, Mapping):
+            raise InputError("PoseKeys targets must be a dict {frame: {joint: (x, y, z)}}, got "
+                             f"{type(self.targets).__name__}")
+        if not self.targets:
+            raise InputError("PoseKeys targets are empty: key at least one joint at one frame")
+        targets: dict[int, dict[str, list[float]]] = {}
+        for frame, keyed in self.targets.items():
+            frame = frame_number(frame, "PoseKeys frame")
+            at = f"PoseKeys frame {frame}"
+            if not isinstance(keyed, Mapping) or not keyed:
+                raise InputError(f"{at}: expected {{joint: (x, y, z)}} with at least one joint, got {brief(keyed)}")
+            for joint, point in keyed.items():
+                if joint not in JOINT_INDEX:
+                    raise InputError(f"{at}: unknown joint {joint!r}; joints: {', '.join(JOINT_NAMES)}")
+                targets.setdefault(frame, {})[joint] = _point(point, 3, f"{at}, {joint}", "(x, y, z)")
+        self.targets = targets
+        _check_weights(self)
 
     def last_frame(self) -> int:
         return max(self.targets)
@@ -62,6 +128,21 @@ class RootPath:
     points: np.ndarray  # (K, 2) metres
     weight: float = 1.0
     tolerance_m: float = 0.10
+
+    def __post_init__(self):
+        if not _length(self.frames):
+            raise InputError(f"RootPath frames must be a list of whole frames 0 or more, got {brief(self.frames)}")
+        frames = [frame_number(f, "RootPath frame") for f in self.frames]
+        for a, b in zip(frames, frames[1:]):
+            if b <= a:
+                raise InputError(f"RootPath frames must increase, got {a} then {b}")
+        points = self.points
+        if _length(points) != len(frames):
+            raise InputError(f"RootPath points must be one (x, z) per frame ({len(frames)}), got {brief(points)}")
+        self.frames = frames
+        self.points = np.array([_point(p, 2, f"RootPath point {n}", "(x, z)") for n, p in enumerate(points, 1)],
+                               np.float64)  # (K, 2)
+        _check_weights(self)
 
     def last_frame(self) -> int:
         return int(max(self.frames))
@@ -97,6 +178,9 @@ class Loop:
     weight: float = 1.0
     tolerance_m: float = 0.01
 
+    def __post_init__(self):
+        _check_weights(self)
+
     def last_frame(self) -> int:
         return 0
 
@@ -121,6 +205,18 @@ class Continuation:
     joints: np.ndarray
     weight: float = 1.0
     tolerance_m: float = 0.02
+
+    def __post_init__(self):
+        try:
+            joints = np.asarray(self.joints, np.float64)
+        except (TypeError, ValueError):
+            joints = None
+        if joints is None or joints.ndim != 3 or joints.shape[1:] != (22, 3) or not len(joints):
+            raise InputError("Continuation joints must be an array (K, 22, 3) of joint positions in metres, got "
+                             f"{getattr(joints, 'shape', type(self.joints).__name__)}")
+        if not np.isfinite(joints).all():
+            raise InputError("Continuation joints must be finite (no NaN or inf)")
+        _check_weights(self)
 
     def last_frame(self) -> int:
         return len(self.joints) - 1
@@ -154,6 +250,23 @@ class Constraints:
     bone_weight: float = 10.0  # bones keep the reference skeleton's lengths (else planted feet stretch the legs)
     slide_weight: float = 1.0  # with stepping on, the latent stage also lowers the feet's slide (stepping.slide_cost)
     keyed_slide_weight: float = 0.03  # ... instead, with pose keys among the items (keys place the feet themselves)
+
+    def __post_init__(self):
+        if not isinstance(self.items, (list, tuple)):
+            raise InputError(f"Constraints takes a list of constraints, e.g. Constraints([Loop()]), got "
+                             f"{type(self.items).__name__}")
+        for n, item in enumerate(self.items, start=1):
+            if not isinstance(item, CONSTRAINT_KINDS):
+                raise InputError(f"Constraints item {n} is a {type(item).__name__}, not a constraint: use "
+                                 f"{', '.join(k.__name__ for k in CONSTRAINT_KINDS)} (mld_core.constraints)")
+        self.items = list(self.items)
+        for name in ("steps", "feature_steps"):
+            setattr(self, name, int_in_range(getattr(self, name), f"Constraints {name}", 0, MAX_STEPS))
+        for name in ("lr", "feature_lr", "smooth_weight", "in_place_speed_m_s", "prior_weight", "planted_weight",
+                     "planted_toe_height_m", "bone_weight", "slide_weight", "keyed_slide_weight"):
+            setattr(self, name, _not_negative(getattr(self, name), f"Constraints {name}"))
+        if self.smooth_change_only is not None:
+            true_or_false(self.smooth_change_only, "Constraints smooth_change_only (or None)")
 
     def __bool__(self) -> bool:
         return bool(self.items)
@@ -200,6 +313,9 @@ class Constraints:
             out.append((type(item).__name__, r, r <= item.tolerance_m))
         return out
 
+
+CONSTRAINT_KINDS = (PoseKeys, RootPath, Loop, Continuation)
+MAX_STEPS = 100_000  # Adam steps of either stage
 
 FEET = list(FOOT_JOINTS)  # left ankle, left toe (foot), right ankle, right toe: the order of the contact channels
 

@@ -1,5 +1,6 @@
 """Writing files so that a reader never sees half of one: a temporary file in the same folder, then a rename
-(one file: :func:`atomic_write`; several that must appear together or not at all: :class:`OutputSet`)."""
+(one file: :func:`atomic_write`; several that must appear together or not at all: :class:`OutputSet`; a whole
+folder built under a temporary name: :func:`claim_folder`)."""
 
 from __future__ import annotations
 
@@ -122,3 +123,23 @@ def _claim(tmp: str, path: Path) -> None:
         os.replace(tmp, path)
         return
     os.unlink(tmp)
+
+
+def claim_folder(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
+    """Give the finished folder ``tmp`` the name ``path`` only if nothing but an empty folder has it: a rename never
+    replaces a folder that holds anything, so of two runs racing for one new folder only one wins. The loser gets
+    FileExistsError and keeps ``tmp`` (its caller removes it); any other failure is raised as it is."""
+    tmp, path = Path(tmp), Path(path)
+    try:
+        os.rename(tmp, path)
+        return
+    except OSError:
+        if not os.path.lexists(path):
+            raise
+        if not path.is_dir() or path.is_symlink() or any(path.iterdir()):
+            raise FileExistsError(f"{path} exists (written by another run?)") from None
+    try:  # an empty folder: POSIX renames onto it above; Windows does not, so it is removed first
+        path.rmdir()
+        os.rename(tmp, path)
+    except OSError:
+        raise FileExistsError(f"{path} exists (written by another run?)") from None

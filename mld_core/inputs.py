@@ -441,7 +441,7 @@ def check_outputs(outputs: dict[str, Path], inputs: dict[str, Path] | None = Non
             raise InputError(f"{name} {path}: {blocker} is a file, not a folder")
         if path.exists() and not overwrite:
             raise InputError(f"{path} exists; pass --overwrite to replace it")
-        _check_writable(path.expanduser().absolute().parent, name, path)
+        check_writable_folder(path.expanduser().absolute().parent, name, path)
 
 
 def check_output_folder(path: Path, name: str = "--out", files: dict[str, Path] | None = None,
@@ -462,17 +462,21 @@ def check_output_folder(path: Path, name: str = "--out", files: dict[str, Path] 
             raise InputError(f"{name} {path} is the file {other} {file}, or under it; choose another folder")
     path_abs = path.expanduser().absolute()
     if staged_beside or not path.is_dir():
-        _check_writable(path_abs.parent, name, path)
+        check_writable_folder(path_abs.parent, name, path)
     if path.is_dir():
-        _check_writable(path_abs, name, path)
+        check_writable_folder(path_abs, name, path)
 
 
-def _check_writable(folder: Path, name: str, path: Path) -> None:
-    """Files can be made in ``folder``, or in the nearest folder above it that exists (it will be made there)."""
+def check_writable_folder(folder: Path, name: str = "--out", path: Path | None = None) -> None:
+    """Files can be made in ``folder``, or in the nearest folder above it that exists (it will be made there): not
+    read-only (permissions, a read-only mount, an immutable folder). ``path``: the output named in the message
+    (default: the folder itself)."""
+    path = folder if path is None else path
+    folder = Path(folder).expanduser().absolute()
     while not folder.exists() and folder != folder.parent:
         folder = folder.parent
     if folder.is_dir() and not os.access(folder, os.W_OK | os.X_OK):
-        raise InputError(f"{name} {path}: the folder {folder} cannot be written (no permission); choose another place")
+        raise InputError(f"{name} {path}: the folder {folder} cannot be written (read-only or no permission); choose another place")
 
 
 def _key(path) -> Path:

@@ -15,7 +15,7 @@ import warnings
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -26,7 +26,7 @@ from mld_core.inputs import InputError
 from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, CheckpointError, ModelConfig, load_config,
                                  load_weights)
 from mld_core.models.denoiser import LatentDenoiser
-from mld_core.constraints import bone_stretch, planted_feet, planted_foot_speed, root_speed
+from mld_core.constraints import Constraints, bone_stretch, brief, planted_feet, planted_foot_speed, root_speed
 from mld_core.eval.quality import REAL_JERK_P95, seam_jerk
 from mld_core.motion.features import FOOT_CONTACT, features_to_joints, mirror_text
 from mld_core.motion.repair import RepairConfig, lock_feet, repair_features
@@ -82,6 +82,30 @@ class MLDOutput:
         return replace(self, features=self.features[rows], joints=self.joints[rows], lengths=self.lengths[rows],
                        prompts=pick(self.prompts), seeds=pick(self.seeds), badges=pick(self.badges),
                        residuals=pick(self.residuals), draws=pick(self.draws), seams=pick(self.seams))
+
+
+def _prompt_list(prompts) -> list[str]:
+    """A prompt or a list of prompts as a list; anything but text refused."""
+    if prompts is None or isinstance(prompts, bytes) or not isinstance(prompts, (str, Sequence)):
+        raise InputError(f"prompts must be a string or a list of strings, got {type(prompts).__name__}")
+    prompts = [prompts] if isinstance(prompts, str) else list(prompts)
+    for n, prompt in enumerate(prompts, start=1):
+        if not isinstance(prompt, str):
+            raise InputError(f"prompt {n} must be text, not {type(prompt).__name__}")
+    return prompts
+
+
+def _check_constraints(constraints, frames: list[int]) -> None:
+    """``constraints`` (None or a Constraints) fit takes of ``frames`` model frames: one length, no frame beyond it."""
+    if constraints is None:
+        return
+    if not isinstance(constraints, Constraints):
+        raise InputError(f"constraints must be a mld_core.constraints.Constraints, e.g. Constraints([Loop()]), got "
+                         f"{type(constraints).__name__}")
+    if constraints and len(set(frames)) > 1:
+        raise InputError("constraints need every motion of a call to have the same length")
+    if constraints:
+        constraints.check_frames(frames[0])
 
 
 def _as_list(value, n: int, name: str) -> list:
@@ -509,7 +533,7 @@ class MLDPipeline:
     def coverage(self, prompts: str | Sequence[str]) -> list:
         """Per prompt a ``mld_core.coverage.Coverage``: score, verdict known / near / unknown, the 3 nearest training
         captions and the model's known contents (verdict "unavailable" for a folder without a coverage index)."""
-        prompts = [prompts] if isinstance(prompts, str) else list(prompts)
+        prompts = _prompt_list(prompts)
         index = self.coverage_index
         if index is None or self.text_encoder is None:
             return [unavailable(p, self.config.actions) for p in prompts]
@@ -598,6 +622,7 @@ class MLDPipeline:
         seeds = [base[i] + v for i, v in rows]
         lengths = torch.tensor([frames[i] for i, _ in rows], device=self.device)
         B = len(rows)
+        _check_constraints(constraints, frames)
 
         # 2. Condition c and the null condition for classifier-free guidance.
         t0 = time.perf_counter()
@@ -741,13 +766,10 @@ class MLDPipeline:
         free take of its own. Returns one row; ``timings["segments"]`` holds each segment's first frame, and
         ``seams`` each seam's largest joint jerk on the joined take against real motion's (``quality.seam_jerk``):
         that, not the Continuation's residual before the fade, is what the seam looks like."""
-        from mld_core.constraints import Constraints, Continuation
+        from mld_core.constraints import Continuation
 
         t_start = time.perf_counter()
-        segments = [(str(p), float(s)) for p, s in segments]
-        if not segments:
-            raise InputError("a sequence needs at least one (prompt, seconds) segment")
-        overlap = int(round(overlap_s * self.config.fps))
+        segments, overlap = self._sequence_segments(segments, overlap_s)
         repair = kwargs.pop("repair", True)  # per segment, once they are joined (below)
         kwargs["side_redraws"] = 0  # joined segments are not drawn again (a side is asked of a segment, not the take)
         step = kwargs.pop("step", repair)  # each segment's sample, before it is joined
@@ -782,6 +804,41 @@ class MLDPipeline:
         return MLDOutput(features[None].astype(np.float32), joints, np.array([len(features)]),
                          [" | ".join(p for p, _ in segments)], [seed], self.config.fps, self.model_id, timings,
                          seams=[seams])
+
+    def _sequence_segments(self, segments, overlap_s) -> tuple[list[tuple[str, float]], int]:
+        """A sequence's ``[(prompt, seconds), ...]`` checked before any work (prompts text with words, each later
+        segment's seconds with the overlap it also makes within the model's lengths) and the overlap in frames (at
+        least one, at most the first segment's)."""
+        if isinstance(segments, (str, bytes, Mapping)) or not isinstance(segments, Iterable):
+            raise InputError("a sequence is a list of (prompt, seconds) segments, e.g. [('a person walks', 3.0)], "
+                             f"got {type(segments).__name__}")
+        segments = list(segments)
+        if not segments:
+            raise InputError("a sequence needs at least one (prompt, seconds) segment")
+        fps = self.config.fps
+        overlap_s = inputs.finite_number(overlap_s, "overlap_s")
+        overlap = int(round(overlap_s * fps))
+        if overlap < 1:
+            raise InputError(f"overlap_s must be at least one frame ({1 / fps:g} s), got {overlap_s:g}")
+        limits = inputs.ModelLimits(fps, self.config.min_frames, self.config.max_frames)
+        checked = []
+        for k, segment in enumerate(segments, start=1):
+            at = f"sequence segment {k}"
+            if isinstance(segment, (str, bytes)) or not isinstance(segment, Sequence) or len(segment) != 2:
+                raise InputError(f"{at} must be a (prompt, seconds) pair, got {brief(segment)}")
+            prompt, seconds = segment
+            try:
+                inputs.check_prompt(prompt)
+            except InputError as exc:
+                raise InputError(f"{at}: {exc}") from None
+            extra = overlap / fps if k > 1 else 0.0  # a later segment also makes the previous one's last frames
+            seconds = inputs.finite_number(seconds, f"{at}: seconds")
+            what = f"{at}: length" + (f" (+ {extra:g} s overlap)" if extra else "")
+            inputs.check_seconds(seconds + extra, limits, what)
+            checked.append((prompt, seconds))
+        if len(checked) > 1 and overlap > self.frames_for(checked[0][1]):
+            raise InputError(f"overlap_s {overlap_s:g} is longer than sequence segment 1 ({checked[0][1]:g} s)")
+        return checked, overlap
 
     def repair_rows(self, features: np.ndarray, lengths: list, config: RepairConfig | None = None) -> np.ndarray:
         """Each row's first ``lengths[i]`` frames with the repairs of ``config`` (default: the model's) applied (a

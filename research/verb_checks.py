@@ -1,5 +1,7 @@
 """How well each verb's physical check reads real motion: hit rate on real CMU windows whose captions ask for that verb,
-false-alarm rate on windows whose captions ask for none of the checked verbs (and on plain walks on flat ground).
+false-alarm rate on windows whose captions ask for none of the checked verbs (and on plain walks on flat ground);
+two more rows read the captions that ask for walking or running with the locomotion check (how often a caption's
+walk or run is what the motion does).
 
     python research/verb_checks.py --data DIR [--values] [--json FILE]
 
@@ -13,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -26,6 +29,8 @@ from mld_core.data.verbs import VERBS, verbs_in  # noqa: E402
 from mld_core.eval import physical  # noqa: E402
 
 WALK_WORDS = ("walk", "walks", "walking")
+# Captions that ask for walking or running (and for none of the checked verbs): read by the locomotion check.
+LOCOMOTION = {"walk": re.compile(r"\b(walk|walks|walking)\b"), "run": re.compile(r"\b(run|runs|running|jogs?|jogging)\b")}
 NOT_FLAT = ("terrain", "stairs", "steps", "ladder", "step", "up", "over", "slope")
 
 
@@ -36,12 +41,14 @@ def measure(data: Path) -> dict:
         text = " ".join(c.text for c in read_captions(data / "texts" / f"{cid}.txt"))
         joints = np.load(data / "new_joints" / f"{cid}.npy")
         result = physical.classify(joints)
-        rows[cid] = {"verbs": verbs_in(text), "walk": _flat_walk(text),
-                     "shows": {v: physical.shows(joints, v, result=result) for v in VERBS},
-                     "values": {v: float(result[physical._VERB_SHOWS[v][0]].value) for v in VERBS}}
+        asked = verbs_in(text)
+        rows[cid] = {"verbs": asked, "walk": _flat_walk(text),
+                     "locomotion": [v for v, word in LOCOMOTION.items() if not asked and word.search(text.lower())],
+                     "shows": {v: physical.shows(joints, v, result=result) for v in (*VERBS, *LOCOMOTION)},
+                     "values": {v: float(result[physical._VERB_SHOWS[v][0]].value) for v in (*VERBS, *LOCOMOTION)}}
     table = {}
-    for verb in VERBS:
-        hits = [r for r in rows.values() if verb in r["verbs"]]
+    for verb in (*VERBS, *LOCOMOTION):
+        hits = [r for r in rows.values() if verb in r["verbs"] or verb in r["locomotion"]]
         rest = [r for r in rows.values() if not r["verbs"]]
         walks = [r for r in rest if r["walk"]]
         table[verb] = {"windows": len(hits), "hit_rate": _rate(hits, verb), "others": len(rest),

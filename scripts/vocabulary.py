@@ -3,6 +3,7 @@ inverted, stand up, climb, kick, throw), prompts worded three ways, scored by th
 against real CMU motion's pass rate of the same check.
 
     python scripts/vocabulary.py --data DIR [--model DIR] [--seeds 8] [--seconds 5] [--threads 2] [--json FILE]
+        [--verbs jump,crawl,...] [--vae-recon]
 
 DIR is a folder written by ``python -m mld_core data prepare cmu-joints``. The three wordings per verb:
   caption: test-split captions that ask for the verb (captions written from the whole trial; the first
@@ -13,7 +14,9 @@ DIR is a folder written by ``python -m mld_core data prepare cmu-joints``. The t
 Each prompt is generated with ``--seeds`` seeds (seeds 0..N-1) at ``--seconds``. The real rate is the check's pass
 rate on the real test windows of that verb (all splits when the test split has fewer than 8). Prints one row per verb
 and wording: takes, pass rate, the real rate and their ratio (the target is >= 0.8); ``--json`` writes every take's
-prompt, seed and pass. A measurement, not a test: it asserts nothing. The Bandai contents' table is
+prompt, seed and pass. ``--vae-recon`` generates nothing: it passes the real windows through the model's VAE and
+prints each verb's pass rate before and after (the ceiling a denoiser on that VAE can reach; a VAE-only run folder
+works). A measurement, not a test: it asserts nothing. The Bandai contents' table is
 ``research/side_accuracy.py``.
 """
 
@@ -74,6 +77,22 @@ def prompts_for(data: Path, verb: str, whole: set[str], captions: int) -> tuple[
             "user": [USER[verb]]}, real
 
 
+def vae_recon_rate(pipe, data: Path, wins: list[tuple[str, list[str]]], verb: str, batch: int = 16) -> float:
+    """The verb's pass rate on the real windows after the model's VAE encodes and decodes them (at their length):
+    the ceiling a denoiser on that VAE can reach."""
+    from mld_core.motion.features import features_to_joints
+
+    max_frames = int(pipe.config.max_frames)
+    passed = []
+    for k in range(0, len(wins), batch):
+        feats = [np.load(data / "new_joint_vecs" / f"{cid}.npy")[:max_frames] for cid, _ in wins[k:k + batch]]
+        z, lengths = pipe.features_to_latents(feats)
+        recon = pipe.latents_to_features(z, lengths)
+        for i, n in enumerate(lengths.tolist()):
+            passed.append(physical.shows(features_to_joints(recon[i, :n]), verb))
+    return float(np.mean(passed)) if passed else float("nan")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", required=True, type=Path, help="a folder written by data prepare cmu-joints")
@@ -84,6 +103,8 @@ def main(argv=None) -> int:
     ap.add_argument("--verbs", default=",".join(VERBS), help="comma-separated verbs (default: all)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--vae-recon", action="store_true",
+                    help="only the real windows through the model's VAE (works on a VAE-only run folder)")
     args = ap.parse_args(argv)
     if not (args.data / "prepare_report.json").is_file():
         print(f"error: {args.data} is not a folder written by data prepare cmu-joints", file=sys.stderr)
@@ -102,6 +123,17 @@ def main(argv=None) -> int:
     pipe = MLDPipeline.from_pretrained(args.model)
     whole = set(whole_trial_windows(args.data))
     rows, takes, start = [], [], time.perf_counter()
+    if args.vae_recon:
+        print(f"model {pipe.model_id}: the real windows through its VAE")
+        print(f"{'verb':12} {'windows':>7} {'real':>6} {'recon':>6}")
+        for verb in verbs:
+            _, real_wins = prompts_for(args.data, verb, whole, args.captions)
+            real, recon = real_rate(args.data, real_wins, verb), vae_recon_rate(pipe, args.data, real_wins, verb)
+            rows.append({"verb": verb, "real_windows": len(real_wins), "real": real, "vae_recon": recon})
+            print(f"{verb:12} {len(real_wins):7d} {real:6.2f} {recon:6.2f}", flush=True)
+        if args.json:
+            args.json.write_text(json.dumps({"model": pipe.model_id, "rows": rows}, indent=1) + "\n")
+        return 0
     print(f"model {pipe.model_id}; {args.seeds} seeds x {args.seconds:g} s")
     print(f"{'verb':12} {'wording':15} {'takes':>5} {'pass':>6} {'real':>6} {'ratio':>6}")
     for verb in verbs:

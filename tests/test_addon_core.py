@@ -467,8 +467,9 @@ def test_installer_runs_commands_and_reports_failure():
 
 BPY_FREE = (  # the add-on's worker and mld_core.rig: plain Python that never reaches into the Blender layer
     *(f"blender_addon.worker.{m}" for m in ("validation", "jobs", "model_cache", "naming", "batchfile", "generation",
-                                             "coverage_watch", "dependencies")),
-    *(f"mld_core.rig.{m}" for m in ("bone_maps", "retarget", "keyframes", "canonical_pose", "keying")),
+                                             "coverage_watch", "dependencies", "export_plan")),
+    *(f"mld_core.rig.{m}" for m in ("bone_maps", "retarget", "keyframes", "canonical_pose", "keying", "root_motion",
+                                    "engine_export")),
 )
 
 

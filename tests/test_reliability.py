@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -170,6 +171,118 @@ def test_pipeline_never_returns_non_finite_joints(pipe):
     assert np.isfinite(out.joints).all() and out.seeds == [3]
 
 
+def _keys(targets, **settings):
+    from mld_core.constraints import PoseKeys
+
+    return PoseKeys(targets, **settings)
+
+
+def _path(frames, points):
+    from mld_core.constraints import RootPath
+
+    return RootPath(frames, np.asarray(points, np.float64))
+
+
+def _constraints(items, **settings):
+    from mld_core.constraints import Constraints
+
+    return Constraints(items, **settings)
+
+
+POSE = [0.0, 0.9, 0.0]
+CONSTRAINT_CASES = [  # made by the user's own code: refused when made, before any generation
+    (lambda: _keys({-3: {"pelvis": POSE}}), "PoseKeys frame must be 0 or more, got -3"),
+    (lambda: _keys({2.5: {"pelvis": POSE}}), "PoseKeys frame must be a whole number"),
+    (lambda: _keys({True: {"pelvis": POSE}}), "PoseKeys frame must be a number"),
+    (lambda: _keys({10: {"nose": POSE}}), "unknown joint 'nose'"),
+    (lambda: _keys({10: {"pelvis": [0.0, math.nan, 0.0]}}), "pelvis y must be a finite number"),
+    (lambda: _keys({10: {"pelvis": [0.0, 0.9]}}), "pelvis must be (x, y, z)"),
+    (lambda: _keys({10: {"pelvis": "0 0.9 0"}}), "pelvis must be (x, y, z)"),
+    (lambda: _keys({10: {}}), "at least one joint"),
+    (lambda: _keys({}), "targets are empty"),
+    (lambda: _keys([(10, {"pelvis": POSE})]), "targets must be a dict"),
+    (lambda: _path([10, 5], [[0, 0], [0, 1]]), "frames must increase, got 10 then 5"),
+    (lambda: _path([0, 10, 10], [[0, 0], [0, 1], [0, 2]]), "frames must increase, got 10 then 10"),
+    (lambda: _path([-5, 10], [[0, 0], [0, 1]]), "RootPath frame must be 0 or more, got -5"),
+    (lambda: _path([0, 10], [[0, 0]]), "one (x, z) per frame (2)"),
+    (lambda: _path([0, 10], [[0, 0], [math.inf, 1]]), "point 2 x must be a finite number"),
+    (lambda: _keys({10: {"pelvis": POSE}}, weight=-1), "PoseKeys weight must be 0 or more"),
+    (lambda: _constraints([{"frame": 10, "joints": {"pelvis": POSE}}]), "item 1 is a dict, not a constraint"),
+    (lambda: _constraints([[10, POSE]]), "item 1 is a list, not a constraint"),
+    (lambda: _constraints(_keys({10: {"pelvis": POSE}})), "takes a list of constraints"),
+    (lambda: _constraints([], steps=-1), "Constraints steps must be between 0"),
+    (lambda: _constraints([], lr=math.nan), "Constraints lr must be a finite number"),
+]
+
+
+@pytest.mark.parametrize("make, words", CONSTRAINT_CASES, ids=[c[1][:40] for c in CONSTRAINT_CASES])
+def test_constraint_objects_check_themselves_when_made(make, words):
+    with pytest.raises(inputs.InputError) as caught:
+        make()
+    assert words in str(caught.value) and "\n" not in str(caught.value)
+
+
+def test_constraints_the_take_cannot_hold_are_refused_before_sampling(pipe, monkeypatch):
+    from mld_core.constraints import Loop
+
+    def no_sampling(*args, **kwargs):
+        raise AssertionError("sampled before the constraints were checked")
+
+    monkeypatch.setattr(pipe, "_condition", no_sampling)
+    with pytest.raises(inputs.InputError, match="reaches frame 40, but the take has 40 frames"):
+        pipe("a person walks", 2.0, constraints=_constraints([_keys({40: {"head": POSE}})]))
+    with pytest.raises(inputs.InputError, match="constraints must be a mld_core.constraints.Constraints"):
+        pipe("a person walks", 2.0, constraints=[Loop()])
+    with pytest.raises(inputs.InputError, match="the same length"):
+        pipe(["a person walks", "a person runs"], [2.0, 3.0], constraints=_constraints([Loop()]))
+
+
+SEQUENCE_CASES = [
+    (dict(segments=[(None, 2.0)]), "sequence segment 1: The prompt must be text, not NoneType"),
+    (dict(segments=[("a person walks", 2.0), ("!!!", 2.0)]), "sequence segment 2: The prompt '!!!' has no words"),
+    (dict(segments=[("a person walks", "three")]), "sequence segment 1: seconds must be a number, got 'three'"),
+    (dict(segments=[("a person walks", None)]), "sequence segment 1: seconds must be a number"),
+    (dict(segments=[("a person walks", math.nan)]), "sequence segment 1: seconds must be a finite number"),
+    (dict(segments=[("a person walks", 2.0, 1)]), "segment 1 must be a (prompt, seconds) pair"),
+    (dict(segments=["a person walks"]), "segment 1 must be a (prompt, seconds) pair"),
+    (dict(segments=None), "a sequence is a list of (prompt, seconds) segments"),
+    (dict(segments="a person walks"), "a sequence is a list of (prompt, seconds) segments"),
+    (dict(segments=[]), "at least one (prompt, seconds) segment"),
+    (dict(overlap_s=-1), "overlap_s must be at least one frame"),
+    (dict(overlap_s=0), "overlap_s must be at least one frame"),
+    (dict(overlap_s=math.nan), "overlap_s must be a finite number"),
+    (dict(overlap_s="half"), "overlap_s must be a number"),
+    (dict(overlap_s=1.5), "overlap_s 1.5 is longer than sequence segment 1 (1 s)"),
+    (dict(segments=[("a person walks", 1.0), ("a person runs", 9.5)]),
+     "sequence segment 2: length (+ 0.5 s overlap) must be between 1 and 9.8 seconds"),
+]
+
+
+@pytest.mark.parametrize("kwargs, words", SEQUENCE_CASES, ids=[c[1][:40] for c in SEQUENCE_CASES])
+def test_a_sequence_is_checked_before_any_segment_is_made(pipe, monkeypatch, kwargs, words):
+    def no_generation(*args, **kwargs):
+        raise AssertionError("a segment was generated before the sequence was checked")
+
+    monkeypatch.setattr(type(pipe), "__call__", no_generation)
+    kwargs = {"segments": [("a person walks", 1.0), ("a person runs", 1.0)], **kwargs}
+    with pytest.raises(inputs.InputError) as caught:
+        pipe.sequence(kwargs.pop("segments"), **kwargs)
+    assert words in str(caught.value) and "\n" not in str(caught.value)
+
+
+@pytest.mark.parametrize("prompts, words", [
+    ([None], "prompt 1 must be text, not NoneType"), ([42], "prompt 1 must be text, not int"),
+    (["a person walks", b"a person runs"], "prompt 2 must be text, not bytes"),
+    (None, "prompts must be a string or a list of strings, got NoneType"),
+    (42, "prompts must be a string or a list of strings, got int"),
+    (b"a person walks", "prompts must be a string or a list of strings, got bytes"),
+], ids=["[None]", "[42]", "[text, bytes]", "None", "42", "bytes"])
+def test_coverage_refuses_what_is_not_a_prompt(pipe, prompts, words):
+    with pytest.raises(inputs.InputError, match=re.escape(words)):
+        pipe.coverage(prompts)
+    assert [c.prompt for c in pipe.coverage(("a person walks", "a person runs"))] == ["a person walks", "a person runs"]
+
+
 # -- the output writer: all or none, and one winner of a race --------------------------------------------------------
 def test_output_set_commits_all_or_none(tmp_path):
     (tmp_path / "b.txt").write_text("someone else's")
@@ -219,6 +332,98 @@ def test_data_prepare_keeps_what_the_user_added(fixtures, tmp_path, capsys):
     (tmp_path / "a_file").write_text("x")
     refused(["data", "prepare", "bandai", src, "--out", tmp_path / "a_file" / "out"], tmp_path, capsys,
             "is a file, not a folder")
+
+
+def _prepare_argv(kind: str, fixtures: Path, root: Path) -> list:
+    """``data prepare bandai`` of the fixture clips, or ``data prepare bvh`` of a folder of two of them."""
+    if kind == "bandai":
+        return ["data", "prepare", "bandai", fixtures / "bandai", "--workers", "1", "--quiet"]
+    src = root / "library"
+    if not src.exists():
+        src.mkdir()
+        for name in ("dataset-2_walk-turn-left_normal_027", "dataset-2_wave-right-hand_normal_026"):
+            shutil.copy(fixtures / "bandai" / f"{name}.bvh", src / f"{name}.bvh")
+    return ["data", "prepare", "bvh", src, "--caption-template", "a person {name}"]
+
+
+def _complete(out: Path) -> bool:
+    """``out`` holds exactly the files its manifest lists."""
+    from mld_core.data.bandai import MANIFEST, written_files
+
+    listed = json.loads((out / MANIFEST).read_text())["files"]
+    return sorted(set(listed) | {MANIFEST}) == written_files(out)
+
+
+@pytest.mark.parametrize("kind", ["bandai", "bvh"])
+@pytest.mark.parametrize("previous", [False, True], ids=["new", "rerun"])
+def test_data_prepare_racing_for_one_out_has_one_winner(fixtures, tmp_path, capsys, monkeypatch, kind, previous):
+    import threading
+
+    from mld_core.data import bandai, bvh_library  # bvh_library imported before bandai.swap_into_place is patched
+
+    argv, out = _prepare_argv(kind, fixtures, tmp_path), tmp_path / "prepared"
+    if previous:  # a rerun over an output of this command
+        assert main([*map(str, argv), "--out", str(out)]) == 0
+    swap, barrier, codes = bandai.swap_into_place, threading.Barrier(2, timeout=120), []
+
+    def swap_together(tmp, path, found):  # both runs have checked --out and built their folders: now both swap
+        barrier.wait()
+        swap(tmp, path, found)
+
+    monkeypatch.setattr(bandai, "swap_into_place", swap_together)
+    monkeypatch.setattr(bvh_library, "swap_into_place", swap_together)
+    runs = [threading.Thread(target=lambda: codes.append(main([*map(str, argv), "--out", str(out)])))
+            for _ in range(2)]
+    for r in runs:
+        r.start()
+    for r in runs:
+        r.join()
+    err = capsys.readouterr().err
+    assert sorted(codes) == [0, 2], (codes, err)
+    assert [line for line in err.splitlines() if line.startswith("error:")] == [
+        f"error: --out {out} was written by another run meanwhile; this run kept nothing - choose another folder or "
+        "run it again"], err
+    assert "Traceback" not in err and _complete(out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["prepared"] + (["library"] if kind == "bvh" else []))
+
+
+@pytest.mark.parametrize("kind", ["bandai", "bvh"])
+def test_data_prepare_refuses_an_out_another_run_wrote_meanwhile(fixtures, tmp_path, capsys, monkeypatch, kind):
+    import threading
+
+    from mld_core.data import bandai, bvh_library  # bvh_library imported before bandai.swap_into_place is patched
+
+    argv, out = _prepare_argv(kind, fixtures, tmp_path), tmp_path / "prepared"
+    swap, after = bandai.swap_into_place, {}
+
+    def other_run_first(tmp, path, found):  # between this run's check of --out and its swap, another run writes it
+        monkeypatch.setattr(bandai, "swap_into_place", swap)
+        monkeypatch.setattr(bvh_library, "swap_into_place", swap)
+        other = threading.Thread(target=main, args=([*map(str, argv), "--out", str(out)],))
+        other.start()
+        other.join()
+        after.update((k, v) for k, v in snapshot(tmp_path).items() if not k.startswith(Path(tmp).name))
+        swap(tmp, path, found)
+
+    monkeypatch.setattr(bandai, "swap_into_place", other_run_first)
+    monkeypatch.setattr(bvh_library, "swap_into_place", other_run_first)
+    code = main([*map(str, argv), "--out", str(out)])
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.startswith("error:")]
+    assert code == 2 and len(lines) == 1 and "written by another run meanwhile" in lines[0], err
+    assert "Traceback" not in err and snapshot(tmp_path) == after and _complete(out)  # the other run's, untouched
+
+
+def test_data_prepare_refuses_an_out_it_cannot_write(fixtures, tmp_path, capsys, monkeypatch):
+    import os
+
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    access = os.access  # a folder this user may not write in (the tests may run as root, who may write anywhere)
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: Path(p) != locked and access(p, mode, **kw))
+    for kind in ("bandai", "bvh"):
+        argv = _prepare_argv(kind, fixtures, tmp_path)
+        refused([*argv, "--out", locked / "data"], tmp_path, capsys, f"the folder {locked} cannot be written")
 
 
 def _h3d_folder(root: Path) -> Path:

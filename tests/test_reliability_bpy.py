@@ -3,7 +3,11 @@ message without a traceback and the file system after (see tests/test_reliabilit
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -148,3 +152,52 @@ def test_batch_job_files_are_checked_before_any_work(work, capsys):
     for name, (text, words) in bad.items():
         (w / name).write_text(text)
         batch_refuses(["--jobs", w / name, "--out", w / "x.blend"], w, capsys, words)
+
+
+@contextlib.contextmanager
+def read_only(folder: Path):
+    """``folder`` made read-only (an immutable folder for root, who writes anywhere else), then writable again."""
+    folder.mkdir()
+    if os.geteuid() == 0:
+        if shutil.which("chattr") is None or subprocess.run(["chattr", "+i", str(folder)]).returncode != 0:
+            pytest.skip("running as root on a file system without chattr +i: no folder is read-only to root")
+        try:
+            yield folder
+        finally:
+            subprocess.run(["chattr", "-i", str(folder)])
+    else:
+        folder.chmod(0o555)
+        try:
+            yield folder
+        finally:
+            folder.chmod(0o755)
+
+
+def test_batch_export_flags_are_checked_before_any_work(work, capsys):
+    """--export and its flags (docs/game_engines.md): unknown values, exports colliding with the .blend, the
+    manifest, --bvh-dir or a file that exists, a file where the folder goes, a read-only folder."""
+    w = work
+    (w / "walks_s0.fbx").write_bytes(b"an earlier export")
+    walk = ["--prompt", "a person walks", "--out", w / "out" / "x.blend"]
+    cases = [
+        (["--export", "obj"], "--export: unknown value 'obj'; use fbx, glb or bvh"),
+        (["--export", "fbx,fbx"], "--export: fbx is named twice"),
+        (["--export", "fbx", "--bone-names", "maya"], "--bone-names: unknown value 'maya'"),
+        (["--export", "glb", "--root-motion", "sideways"], "--root-motion: unknown value 'sideways'"),
+        (["--root-motion", "in-place"], "--root-motion needs --export"),
+        (["--export", "fbx", "--root-yaw"], "--root-yaw needs --root-motion in-place or root-bone"),
+        (["--export", "fbx", "--manifest", w / "out" / "walks_s0.fbx"],
+         "--export fbx (walks_s0) " + str(w / "out" / "walks_s0.fbx") + " is the same file as --manifest"),
+        (["--export", "fbx", "--one-file", "--export-dir", w / "out", "--manifest", w / "out" / "x.fbx"],
+         "--export fbx (every take) " + str(w / "out" / "x.fbx") + " is the same file as --manifest"),
+        (["--export", "bvh", "--bvh-dir", w / "out"], "--export bvh (walks_s0) " + str(w / "out" / "walks_s0.bvh")
+         + " is the same file as --bvh-dir file (walks_s0)"),
+        (["--export", "fbx", "--export-dir", w], str(w / "walks_s0.fbx") + " exists; pass --overwrite"),
+        (["--export", "fbx", "--export-dir", w / "keep.blend"], "--export-dir " + str(w / "keep.blend")
+         + " exists and is not a folder"),
+    ]
+    for argv, words in cases:
+        batch_refuses(walk + argv, w, capsys, words)
+    with read_only(w / "locked") as locked:
+        batch_refuses(walk + ["--export", "fbx", "--export-dir", locked / "engine"], w, capsys,
+                      f"--export-dir {locked / 'engine'}: the folder {locked} cannot be written")

@@ -126,18 +126,20 @@ classes = (MLD_PT_generate,)
 
 
 def register():
-    from . import retarget_panel
+    from . import export_panel, retarget_panel
 
     for cls in classes:
         bpy.utils.register_class(cls)
     retarget_panel.register()  # the Retarget sub-panel (after its parent), its operators and Object.mld_retarget
     quality_panel.register()  # the "What This Model Knows" sub-panel
     sequence_panel.register()  # the prompt sequence's list and its buttons
+    export_panel.register()  # Game Engine Export: Actions into FBX / GLB / BVH files
 
 
 def unregister():
-    from . import retarget_panel
+    from . import export_panel, retarget_panel
 
+    export_panel.unregister()
     sequence_panel.unregister()
     quality_panel.unregister()
     retarget_panel.unregister()

@@ -49,6 +49,17 @@ class Take:
     def frames(self) -> int:
         return int(self.joints.shape[0])
 
+    @property
+    def loops(self) -> bool:
+        """Whether this take was made as a loop (a Loop among its request's constraints)."""
+        constraints = self.request.extra.get("constraints") if isinstance(self.request.extra, dict) else None
+        items = getattr(constraints, "items", None) or ()
+        if not items:
+            return False
+        from mld_core.constraints import Loop
+
+        return any(isinstance(item, Loop) for item in items)
+
     def provenance(self) -> dict:
         """Custom properties for the Action: everything needed to regenerate this take exactly."""
         data = {
@@ -60,6 +71,7 @@ class Take:
             "draw": int(self.draw),
             "steps": int(self.steps),
             "draft": bool(self.request.draft),
+            "loop": self.loops,  # the last frame repeats the first (exported as a loop: scene/export_takes.py)
             "guidance": float(self.guidance) if self.guidance is not None else -1.0,
             "seconds": float(self.request.seconds),
             "frames": self.frames,

@@ -39,6 +39,7 @@ from typing import Iterator
 
 import numpy as np
 
+from ..fileio import claim_folder
 from ..inputs import InputError, check_output_folder
 from ..motion.bvh import BVHError, parse_bvh
 from . import captions as cap
@@ -329,11 +330,28 @@ def _ours(relative: str, listed: set | None) -> bool:
     return relative in _LAYOUT_FILES if not rest else (top in _LAYOUT_DIRS and "/" not in rest)
 
 
-def check_out(out: Path) -> None:
-    """Refuse an --out that holds anything but a previous output of this command: a rerun replaces only the files
-    that run listed in its manifest, so a file the user added there stops it (nothing is changed)."""
+def _identity(folder: Path) -> tuple | None:
+    """Which output ``folder`` holds: None when it is absent or empty, else (device, inode, its manifest's mtime)."""
     try:
-        check_output_folder(out, "--out")
+        if not any(folder.iterdir()):
+            return None
+        st, manifest = folder.stat(), (folder / MANIFEST).stat()
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino, manifest.st_mtime_ns
+
+
+def check_out(out: Path) -> tuple | None:
+    """Refuse an --out that holds anything but a previous output of this command: a rerun replaces only the files
+    that run listed in its manifest, so a file the user added there stops it (nothing is changed). Returns what it
+    found there (None: nothing), for :func:`swap_into_place`."""
+    _check_out(out)
+    return _identity(out)
+
+
+def _check_out(out: Path) -> None:
+    try:
+        check_output_folder(out, "--out", staged_beside=True)
     except InputError as exc:
         raise PrepareError(str(exc)) from None
     if not out.is_dir() or not any(out.iterdir()):
@@ -397,18 +415,45 @@ def _license(original: str | None) -> str:
     return head
 
 
-def swap_into_place(tmp: Path, out: Path) -> None:
-    """Rename the finished folder ``tmp`` to ``out``; a previous output there (ours: checked again) is removed only
-    after the rename."""
-    check_out(out)
-    old = None
-    if out.exists():
-        old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
-        os.rmdir(old)
-        os.replace(out, old)
-    os.replace(tmp, out)
-    if old is not None:
+def swap_into_place(tmp: Path, out: Path, found: tuple | None) -> None:
+    """Rename the finished folder ``tmp`` to ``out``. Only ``found``, what :func:`check_out` found there when the run
+    began, is replaced: a new or empty ``out`` is claimed only if still new or empty, a previous output (checked
+    again) is moved aside, renamed over and then removed. An output another run put there meanwhile wins:
+    PrepareError, and this run keeps nothing."""
+    _check_out(out)
+    try:
+        if found is None:
+            claim_folder(tmp, out)
+        else:
+            _replace(tmp, out, found)
+    except FileExistsError:
+        raise PrepareError(f"--out {out} was written by another run meanwhile; this run kept nothing - choose "
+                           "another folder or run it again") from None
+    except OSError as exc:
+        raise PrepareError(f"cannot write --out {out}: {exc.strerror or exc}") from None
+
+
+def _replace(tmp: Path, out: Path, found: tuple) -> None:
+    """Put ``tmp`` in place of the previous output ``found`` at ``out``; FileExistsError when ``out`` holds another
+    output by then (put back as it was)."""
+    old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+    os.rmdir(old)
+    try:
+        os.rename(out, old)
+    except FileNotFoundError:  # another run moved it first
+        raise FileExistsError(out) from None
+    if _identity(old) != found:  # a newer output, not the one this run found: it stays
+        claim_folder(old, out)
+        raise FileExistsError(out)
+    try:
+        claim_folder(tmp, out)
+    except FileExistsError:  # a run that began after the previous output was moved aside: its output wins
         shutil.rmtree(old, ignore_errors=True)
+        raise
+    except OSError:
+        claim_folder(old, out)  # the previous output back in place
+        raise
+    shutil.rmtree(old, ignore_errors=True)
 
 
 def prepare_bandai(src, out, *, workers: int = 2, mirror: bool = True, progress: bool = True,
@@ -425,7 +470,7 @@ def prepare_bandai(src, out, *, workers: int = 2, mirror: bool = True, progress:
     src = Path(src).expanduser()
     out = Path(out).expanduser().absolute()
     kind = check_source(src)
-    check_out(out)
+    found = check_out(out)
     try:
         if out.resolve().is_relative_to(src.resolve()) and kind == "folder":
             raise PrepareError(f"--out {out} must not be inside SRC {src}")
@@ -533,7 +578,7 @@ def prepare_bandai(src, out, *, workers: int = 2, mirror: bool = True, progress:
         manifest = {**summary, "files": written_files(tmp)}  # what a rerun may replace, and nothing else
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
 
-        swap_into_place(tmp, out)
+        swap_into_place(tmp, out, found)
         summary["out"] = str(out)
         return summary
     finally:

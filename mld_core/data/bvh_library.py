@@ -363,7 +363,7 @@ def prepare_bvh(src, out, options: LibraryOptions | None = None) -> dict:
     files = find_bvh(src)
     if not files:
         raise PrepareError(f"no .bvh files under {src}")
-    check_out(out)
+    found = check_out(out)
     if out.resolve().is_relative_to(src.resolve()):
         raise PrepareError(f"--out {out} must not be inside {src}")
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -411,7 +411,7 @@ def prepare_bvh(src, out, options: LibraryOptions | None = None) -> dict:
         (tmp / "README.md").write_text(_readme(src, summary), encoding="utf-8")
         (tmp / MANIFEST).write_text(json.dumps({**summary, "files": written_files(tmp) + [MANIFEST]}, indent=1) +
                                     "\n", encoding="utf-8")
-        swap_into_place(tmp, out)
+        swap_into_place(tmp, out, found)
         for file, why in sorted(skipped.items()):
             print(f"warning: skipped {file}: {why}", file=sys.stderr)
         return {**summary, "out": str(out)}

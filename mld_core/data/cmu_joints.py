@@ -307,7 +307,7 @@ def prepare_cmu_joints(src, out, *, mirror: bool = True, limit: int | None = Non
     from mld_core.motion import features as F
 
     src, out = Path(src).expanduser(), Path(out).expanduser().absolute()
-    check_out(out)
+    found = check_out(out)
     trials, arrays = read_source(src)
     if src.is_dir() and out.resolve().is_relative_to(src.resolve()):
         raise PrepareError(f"--out {out} must not be inside SRC {src}")
@@ -364,7 +364,7 @@ def prepare_cmu_joints(src, out, *, mirror: bool = True, limit: int | None = Non
         (tmp / "LICENSE").write_text(LICENSE_TEXT, encoding="utf-8")
         (tmp / MANIFEST).write_text(json.dumps({**summary, "files": written_files(tmp) + [MANIFEST]}, indent=1)
                                     + "\n", encoding="utf-8")
-        swap_into_place(tmp, out)
+        swap_into_place(tmp, out, found)
         for r in report:
             if "error" in r:
                 print(f"warning: skipped {r['trial']}: {r['error']}", file=sys.stderr)
