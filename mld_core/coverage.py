@@ -12,7 +12,7 @@ the prompt to its nearest training caption), a verdict and the 3 nearest caption
 Side words (left/right) and style words (tired, happy, elderly, ...) are removed from prompt and captions alike
 before they are encoded (:func:`normalise`), so they can never flip a verdict: "a tired person jumps" scores
 exactly as "a person jumps". The thresholds are calibrated on two hand-written prompt sets
-(``scripts/coverage_calibration.py`` prints the table; docs/quality.md has the numbers).
+(``research/coverage_calibration.py`` prints the table; docs/quality.md has the numbers).
 
 Build an index with :func:`build_index` (training and ``scripts/export_model.py`` do) or from a data folder with
 ``python scripts/build_coverage_index.py --data DIR --model DIR``.

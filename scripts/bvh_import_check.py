@@ -5,6 +5,7 @@
 For the first files of each top-level folder under SRC: Blender imports the file (Y up -> Z up, scale 1, file units),
 and the world position of every mapped bone's head is compared with ``mld_core``'s forward kinematics of the same
 frames (``Bvh.joint_positions``), as a fraction of the leg length. Runs Blender as a Python module in this process.
+Prints one line per folder: the files compared and the largest joint difference as a fraction of the leg length.
 """
 
 from __future__ import annotations

@@ -15,6 +15,8 @@ Contents (all small):
     enc_ids, enc_offsets      token ids of those sentences, flattened + offsets (S+1,)
     enc_token_index   int64   which sentences have token-level references
     enc_tokens, enc_tokens_offsets  float32 last hidden states of those sentences (valid tokens only), flattened
+
+Prints the file written, its size and how many texts it holds.
 """
 
 from __future__ import annotations

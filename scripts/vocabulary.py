@@ -17,7 +17,7 @@ and wording: takes, pass rate, the real rate and their ratio (the target is >= 0
 prompt, seed and pass. ``--vae-recon`` generates nothing: it passes the real windows through the model's VAE and
 prints each verb's pass rate before and after (the ceiling a denoiser on that VAE can reach; a VAE-only run folder
 works). A measurement, not a test: it asserts nothing. The Bandai contents' table is
-``scripts/side_accuracy.py``.
+``research/side_accuracy.py``.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""scripts/average_denoisers.py: a model folder whose denoiser is the weighted mean of folders sharing one VAE."""
+"""research/average_denoisers.py: a model folder whose denoiser is the weighted mean of folders sharing one VAE."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from safetensors.torch import load_file
 
 from mld_core.testing import tiny_model
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "research"))
 
 from average_denoisers import main  # noqa: E402
 

@@ -1,4 +1,4 @@
-"""scripts/compare_side_accuracy.py: the per-content gate between two side_accuracy runs."""
+"""research/compare_side_accuracy.py: the per-content gate between two side_accuracy runs."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from statistics import NormalDist
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "research"))
 
 from compare_side_accuracy import compare, main, mcnemar_z, paired_z  # noqa: E402
 

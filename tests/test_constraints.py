@@ -316,7 +316,7 @@ def test_stepped_paths_and_loops_keep_their_feet_planted():  # the bundled model
                                          ("a person runs forward", 2, Loop(), 0.08)):
         out = pipe(prompt, seconds=seconds, seed=0, num_variants=8, constraints=Constraints([item]))
         assert all(met for row in out.residuals for _, _, met in row)
-        # the feet's slide in the latent stage's cost (Constraints.slide_weight; scripts/directed_skating.py): on
+        # the feet's slide in the latent stage's cost (Constraints.slide_weight; research/directed_skating.py): on
         # v3.4, seeds 0-7, the bend skated 0.085 and the walk cycle 0.157 at weight 0.03, 0.006 and 0.054 at 1.0; and the
         # toes near the floor held in the feature stage (Constraints.planted_toe_height_m): on v3.6 the run cycle
         # skated 0.128 with the contact channels alone, 0.064 with them (real runs 0.07)
@@ -332,7 +332,7 @@ def test_a_looped_wave_still_waves():  # the bundled model
     out = pipe("a person waves the right hand", seconds=3, seed=0, num_variants=8, constraints=Constraints([Loop()]))
     assert all(met for row in out.residuals for _, _, met in row)
     # smoothing the features themselves, as a run cycle's seam needs, flattened the wave: 2 of 8 waved on v3.6 (6 of 8
-    # with only the change kept smooth, for takes in place; /work/proto/s31/loop_probe.py)
+    # with only the change kept smooth, for takes in place: docs/control.md)
     assert sum(physical.passes(j[:n], "wave-right-hand") for j, n in zip(out.joints, out.lengths)) >= 4
 
 

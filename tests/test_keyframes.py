@@ -11,7 +11,7 @@ from mld_core.rig import retarget as rt
 
 WALK = "dataset-2_walk-turn-left_normal_027"
 
-# Blender 5.0.1, one F-curve with AUTO_CLAMPED Bezier keys, auto_smoothing NONE (scripts/retarget_fidelity.py and
+# Blender 5.0.1, one F-curve with AUTO_CLAMPED Bezier keys, auto_smoothing NONE (research/retarget_fidelity.py and
 # tests/test_retarget_bpy.py check the model against Blender on the fly; these numbers pin it without bpy).
 PIN_X = np.array([1, 4, 6, 11, 13, 20], float)
 PIN_Y = np.array([0.0, 1.0, 0.5, 0.7, 2.0, 1.5])

@@ -121,7 +121,7 @@ def test_calibration_script_reads_captions_and_checks_them_on_their_captures(tmp
     import importlib.util
     import json
 
-    path = REPO / "scripts" / "side_badge_calibration.py"
+    path = REPO / "research" / "side_badge_calibration.py"
     spec = importlib.util.spec_from_file_location("side_badge_calibration", path)
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)

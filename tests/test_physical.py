@@ -1,5 +1,5 @@
 """Physical checks (mld_core.eval.physical) on synthetic motions built from a real standing pose, on their
-mirror images, and on the real Bandai Namco fixture clips; plus a smoke run of scripts/side_accuracy.py."""
+mirror images, and on the real Bandai Namco fixture clips; plus a smoke run of research/side_accuracy.py."""
 
 from __future__ import annotations
 
@@ -343,7 +343,7 @@ def test_real_bye_clip_raises_the_right_hand(bandai_clips):
 
 
 def _load_script(rootpath):
-    spec = importlib.util.spec_from_file_location("side_accuracy", rootpath / "scripts" / "side_accuracy.py")
+    spec = importlib.util.spec_from_file_location("side_accuracy", rootpath / "research" / "side_accuracy.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
@@ -484,12 +484,12 @@ def _test_clip(cid: str, joints) -> dict:
 
 
 def test_skating_source_reconstructs_through_diffusion_space(bandai_clips, tmp_path, request):
-    """scripts/skating_source.py's VAE rows decode each clip's own VAE mean (whatever the latent normalisation)."""
+    """research/skating_source.py's VAE rows decode each clip's own VAE mean (whatever the latent normalisation)."""
     from mld_core.pipeline import MLDPipeline
     from mld_core.testing import tiny_model
 
     root = _labelled_folder(bandai_clips, tmp_path / "data")
-    spec = importlib.util.spec_from_file_location("skating_source", request.config.rootpath / "scripts" / "skating_source.py")
+    spec = importlib.util.spec_from_file_location("skating_source", request.config.rootpath / "research" / "skating_source.py")
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
     model = tiny_model(tmp_path / "tiny")
@@ -507,7 +507,7 @@ def test_skating_source_reconstructs_through_diffusion_space(bandai_clips, tmp_p
 
 def test_directed_skating_refuses_a_missing_model_folder_in_one_line(tmp_path, capsys, request):
     spec = importlib.util.spec_from_file_location("directed_skating",
-                                                  request.config.rootpath / "scripts" / "directed_skating.py")
+                                                  request.config.rootpath / "research" / "directed_skating.py")
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
     assert script.main(["--model", str(tmp_path / "none"), "--seeds", "1"]) == 2
@@ -520,7 +520,7 @@ def test_directed_skating_counts_a_sequences_seams(tmp_path, request):
     from mld_core.testing import tiny_model
 
     spec = importlib.util.spec_from_file_location("directed_skating",
-                                                  request.config.rootpath / "scripts" / "directed_skating.py")
+                                                  request.config.rootpath / "research" / "directed_skating.py")
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
     pipe = MLDPipeline.from_pretrained(tiny_model(tmp_path / "tiny"))

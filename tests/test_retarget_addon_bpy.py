@@ -20,7 +20,7 @@ ADDON = r"""
 import sys, json
 import numpy as np
 sys.path.insert(0, {repo!r})
-sys.path.insert(0, {repo!r} + "/scripts")
+sys.path.insert(0, {repo!r} + "/research")
 import bpy, addon_utils
 bpy.ops.wm.read_factory_settings(use_empty=True)
 addon_utils.enable("blender_addon", default_set=True)

@@ -2,7 +2,7 @@
 
 Builds the canonical armature, Rigify's metarig and the rig Rigify generates from it, imports a Bandai clip with
 Blender's own BVH importer, detects each bone map, retargets a real clip, keys it (reduced, auto-clamped Bezier)
-and reads back what Blender plays (scripts/retarget_fidelity.py does the work).
+and reads back what Blender plays (research/retarget_fidelity.py does the work).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ def rows(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("retarget_bpy")
     out = tmp / "fidelity.json"
     env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp / "blender_user"), PYTHONPATH=str(REPO))
-    cmd = [sys.executable, str(REPO / "scripts" / "retarget_fidelity.py"), "--rigify-generated",
+    cmd = [sys.executable, str(REPO / "research" / "retarget_fidelity.py"), "--rigify-generated",
            "--take", "dataset-2_walk-turn-left_normal_027", "--json", str(out)]
     proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]

@@ -489,7 +489,7 @@ def test_rewording_brings_in_no_wording_of_the_held_out_paraphrases():
 
     from mld_core.data.captions import CONTENTS, STYLES, SYNONYMS, TURN_VERBS, captions_for
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "research"))
     from side_accuracy import PARAPHRASES
 
     held_out = " | ".join(p.lower() for texts in PARAPHRASES.values() for p in texts)

@@ -511,7 +511,7 @@ NEUTRAL_SUBJECTS = tuple(s for s in SUBJECTS if s not in ("an old man", "an old 
                                                           "an athlete"))
 CAPTION_SUBJECTS = ("a person", "the person", "someone", "a man", "the man", "a woman", "the woman", "a human",
                     "person", "the figure")
-# No synonym writes in a wording of the held-out paraphrases (scripts/side_accuracy.py) that the captions lack
+# No synonym writes in a wording of the held-out paraphrases (research/side_accuracy.py) that the captions lack
 # (tested): those paraphrases measure how the model reads words it was not trained on.
 SYNONYMS = {"walks": ("paces", "moves", "goes"), "runs": ("jogs", "sprints", "dashes"),
             "raises": ("lifts", "puts up", "brings up"), "lowers": ("brings down", "drops", "puts down"),

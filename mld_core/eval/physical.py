@@ -17,7 +17,7 @@ The thresholds are module constants, calibrated on the real clips of the Bandai 
 ``python -m mld_core data prepare bandai`` (6,152 clips incl. mirrored copies; all splits, since nothing
 here is learned); each constant's comment says what it separates. On the test split every content passes
 its own checks at 0.91-1.00 (byebye 0.5 of 4 clips) and every sided clip uses its named side
-(``python scripts/side_accuracy.py --data DIR --real-only`` prints the table).
+(``python research/side_accuracy.py --data DIR --real-only`` prints the table).
 
 Only numpy: this runs on generated motions inside the evaluation scripts and in tests.
 """

@@ -115,7 +115,7 @@ def ground_penetration_cm(joints) -> float:
 
 
 # The 95th percentile of the largest joint jerk per 4-frame window over the first 200 Bandai test clips (m/s^3;
-# scripts/control_table.py, real_jerk_p95): a sequence's seam that jerks more than this is rougher than real motion.
+# research/control_table.py, real_jerk_p95): a sequence's seam that jerks more than this is rougher than real motion.
 REAL_JERK_P95 = 950.0
 SEAM_MARGIN_BEFORE, SEAM_MARGIN_AFTER = 3, 2  # frames around a seam's cross-fade that its jerk is judged over
 

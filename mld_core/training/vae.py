@@ -54,7 +54,7 @@ class VAETrainConfig:
     contact_weight: float = 0.0  # squared horizontal velocity of foot joints where the real clip says contact
     bone_weight: float = 0.0  # squared error of every bone's length against the real clip's
     # weight of the root channels (yaw velocity, xz velocity, height) in the feature MSE; their integral is the
-    # take's global trajectory, so 1 (one channel among 263) lets the latent drop most of the turning (issue 15)
+    # take's global trajectory, so 1 (one channel among 263) lets the latent drop most of the turning
     root_weight: float = 1.0
     # share of crops that start at their clip's first frame: the only frame whose yaw channel holds the turn from the
     # clip's canonical facing to its smoothed facing (a spike of ~5 degrees that random crops almost never show)

@@ -1,7 +1,7 @@
 """Do pose keys cost the take its prompt? R@3 and FID (bundled evaluator) of takes with pose keys against free takes
 of the same captions and seeds (a measurement: prints a table).
 
-    .venv/bin/python scripts/control_quality.py --data DIR [--clips 128] [--threads 2]
+    .venv/bin/python research/control_quality.py --data DIR [--clips 128] [--threads 2]
 
 For the first --clips test clips of at least 3 s (mirrors left out): the clip's first caption at its length, with 4
 pose keys taken from the clip (pelvis, wrists, ankles) and without; R@3 over batches of 32 (the protocol's

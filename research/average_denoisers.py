@@ -1,10 +1,10 @@
 """Average the denoisers of model folders that share one VAE into a new model folder (a weight average).
 
-    python scripts/average_denoisers.py A B [C ...] --out DIR [--weights 0.5,0.5] [--model-id ID]
+    python research/average_denoisers.py A B [C ...] --out DIR [--weights 0.5,0.5] [--model-id ID]
         [--only text_proj,token_proj,...]
 
 Fine-tunes that start from one denoiser can be averaged weight by weight; the average often keeps part of each
-fine-tune's gain (docs/evaluation.md, session 18). The first folder gives everything but the denoiser: the VAE, the
+fine-tune's gain (docs/evaluation.md). The first folder gives everything but the denoiser: the VAE, the
 config (repairs, stepping, sampling), the coverage index and any Draft (which stays the first folder's student).
 The denoiser is the weighted mean of all the folders' denoisers, computed in float32 and stored in the first
 folder's precision; config.json's provenance records the folders and weights under ``denoiser_average``.

@@ -1,6 +1,6 @@
 """Calibrate and check the prompt-coverage thresholds on two hand-written prompt sets.
 
-    python scripts/coverage_calibration.py [--model DIR] [--verbose] [--sweep]
+    python research/coverage_calibration.py [--model DIR] [--verbose] [--sweep]
 
 tests/fixtures/coverage_known.txt holds paraphrases of contents the bundled model knows ("content | prompt"),
 tests/fixtures/coverage_absent.txt prompts of motions absent from its training data. Prints, for the thresholds

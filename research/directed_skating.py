@@ -1,7 +1,7 @@
 """Do directed takes step? Foot skating of takes on a root path, looped takes and prompt sequences, with and without
 stepping (MLDPipeline.step_feet), on the bundled model (a measurement: prints a table, asserts nothing).
 
-    .venv/bin/python scripts/directed_skating.py [--model DIR] [--seeds 8] [--threads 1] [--json out.json]
+    .venv/bin/python research/directed_skating.py [--model DIR] [--seeds 8] [--threads 1] [--json out.json]
 
 Each case runs ``--seeds`` seeds twice, ``step=True`` and ``step=False`` (everything else the same: the
 constraints' own refinement and the repairs). Columns: the mean foot skating ratio (mld_core.eval.quality), the

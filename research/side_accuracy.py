@@ -1,6 +1,6 @@
 """Does a model do what a user notices first? Side, gesture and rare-content accuracy by physical checks.
 
-    .venv/bin/python scripts/side_accuracy.py --model DIR --data DIR [--seeds 4] [--seconds 4] [--clip-length]
+    .venv/bin/python research/side_accuracy.py --model DIR --data DIR [--seeds 4] [--seconds 4] [--clip-length]
         [--prompts paraphrase|captions|both] [--contents raise-up-left-hand,...] [--max-clips 16]
         [--steps N] [--guidance G] [--batch 32] [--threads N] [--json OUT.json] [--real-only] [--vae-recon]
         [--first-seed 0] [--valid-references]
@@ -23,7 +23,7 @@ on a folder with only a VAE (then nothing is generated from text).
 elderly "run" slower than the run check's threshold): a faithful take of such a caption fails too.
 Prints a table; ``--json`` writes every number, with each generated take's pass (0/1), skating ratio and key
 (prompt, seconds, seed, variant) in generation order (the same order for every model), so
-``scripts/compare_side_accuracy.py --z`` can pair the takes of two runs and count a repeated request once (a
+``research/compare_side_accuracy.py --z`` can pair the takes of two runs and count a repeated request once (a
 mirrored clip whose caption names no side asks for the same take). Assert nothing: a measurement, not a test.
 """
 

@@ -5,7 +5,9 @@
 2. Every sided caption of the ``--split`` clips against the clip's own capture: ``side_used`` should say "named"
    (real motion uses the side its caption names), never "opposite".
 
-    python scripts/side_badge_calibration.py --data data/bandai [--split test] [--json out.json]
+    python research/side_badge_calibration.py --data data/bandai [--split test] [--json out.json]
+
+Prints both tables per content, and every caption whose own capture used the opposite side.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """How well the per-joint local rotations reproduce the joints: FK of ``features_to_rotations`` vs the joints
 recovered from the same features, in millimetres.
 
-    python scripts/rotation_fk_error.py [--data /work/data/bandai_h3d] [--split test] [--every N] [--limit N]
+    python research/rotation_fk_error.py [--data data/bandai] [--split test] [--every N] [--limit N]
                                         [--generated] [--prompt TEXT ...] [--seconds 4] [--json OUT]
 
 For every motion (real clips of a HumanML3D-format folder's split, and/or takes the bundled default model
@@ -103,7 +103,8 @@ def generated_motions(prompts, seconds: float, seed: int) -> list[np.ndarray]:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=Path("/work/data/bandai_h3d"), help="HumanML3D-format folder")
+    parser.add_argument("--data", type=Path, default=Path("data/bandai"),
+                        help="HumanML3D-format folder (default: data/bandai, as data prepare bandai writes it)")
     parser.add_argument("--split", default="test")
     parser.add_argument("--limit", type=int, default=None, help="only the first N clips of the split")
     parser.add_argument("--every", type=int, default=1, help="every N-th clip of the split (1: all)")

@@ -1,6 +1,6 @@
 """How well constrained takes meet their constraints, on the bundled model (a measurement: prints a table).
 
-    .venv/bin/python scripts/control_table.py --data DIR [--clips 8] [--seeds 2] [--threads 2]
+    .venv/bin/python research/control_table.py --data DIR [--clips 8] [--seeds 2] [--threads 2]
 
 - pose keys: 4 keyed frames (pelvis, wrists, ankles) taken from real test clips (--data: a prepared folder),
   generated from the clip's first caption at its length: mean error at the keyed frames, keyed joints and root;

@@ -1,11 +1,11 @@
 """Fewer steps and the Draft mode: what a take keeps and where the time goes (prints a table).
 
-    .venv/bin/python scripts/steps_table.py [--steps 1,2,4,8,10,20,50,draft1,draft2] [--seeds 2] [--threads 2]
+    .venv/bin/python research/steps_table.py [--steps 1,2,4,8,10,20,50,draft1,draft2] [--seeds 2] [--threads 2]
                                             [--repeat 5] [--model DIR]
 
 Rows: N = DDIM with N steps; draftN = the model's Draft denoiser with N consistency steps. For each row: the
 physical-check pass rate (mld_core.eval.physical) of the hand-written paraphrases of
-scripts/side_accuracy.py (4 s, --seeds seeds each), the foot skating ratio of the locomotion contents and the mean
+research/side_accuracy.py (4 s, --seeds seeds each), the foot skating ratio of the locomotion contents and the mean
 joint jerk of all takes (mld_core.eval.quality), and the time of one 4 s prompt at batch 1 split into text,
 diffusion, decode and features -> joints (median of --repeat runs, one process): "cold" with a prompt the
 pipeline has not seen (the text encoder runs), "warm" with one it has (its embedding is cached: the live preview's
@@ -25,7 +25,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "scripts"))
+sys.path.insert(0, str(REPO / "research"))
 
 from mld_core.eval import physical  # noqa: E402
 from mld_core.eval.quality import foot_skating_ratio, mean_jerk  # noqa: E402

@@ -1,6 +1,6 @@
 """Retargeting fidelity on real rigs built in Blender (bpy), measured by forward kinematics and by Blender itself.
 
-    python scripts/retarget_fidelity.py [--clip BVH ...] [--generated PROMPT] [--rigify-generated] [--json OUT]
+    python research/retarget_fidelity.py [--clip BVH ...] [--generated PROMPT] [--rigify-generated] [--json OUT]
 
 Without --clip / --generated the source takes are the Bandai fixture clips stored in tests/fixtures/rigs/.
 

@@ -1,9 +1,9 @@
 """Best of N: does ranking N variants by their quality badges pick takes that do what the prompt asks?
 
-    python scripts/best_of_n.py [--model DIR] [--variants 8] [--seconds 4] [--bases 0] [--timing-prompts 6]
+    python research/best_of_n.py [--model DIR] [--variants 8] [--seconds 4] [--bases 0] [--timing-prompts 6]
         [--json OUT.json] [--threads 1]
 
-For every hand-written paraphrase of scripts/side_accuracy.py (20 contents), generates N variants (seeds
+For every hand-written paraphrase of research/side_accuracy.py (20 contents), generates N variants (seeds
 base..base+N-1) with ``rank=True`` and scores each by the content's physical checks (mld_core.eval.physical).
 Prints the pass rate of: the seed-``base`` take (what N=1 gives), the mean over all N variants (N=1's expected
 rate), the ranked first take (N, K=1), the take with the best adherence alone, the best by the physical badges
@@ -26,7 +26,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "scripts"))
+sys.path.insert(0, str(REPO / "research"))
 
 from mld_core.eval import physical, quality  # noqa: E402
 from side_accuracy import DEFAULT_CONTENTS, PARAPHRASES  # noqa: E402

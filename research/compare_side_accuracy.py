@@ -1,12 +1,12 @@
-"""Two runs of scripts/side_accuracy.py side by side: per content the pass rate and foot skating of each, and
+"""Two runs of research/side_accuracy.py side by side: per content the pass rate and foot skating of each, and
 whether the second is at least as good on each (prints a table).
 
-    .venv/bin/python scripts/compare_side_accuracy.py BASE.json NEW.json [--tolerance 0.0] [--z 1.96]
+    .venv/bin/python research/compare_side_accuracy.py BASE.json NEW.json [--tolerance 0.0] [--z 1.96]
 
 Both files come from ``side_accuracy.py --json`` with the same prompts (e.g. ``--prompts both --seeds 16``); each
 prompt set both runs scored gets its table. A content is "worse" when NEW's pass rate is lower, or (locomotion
 contents) its skating higher, by more than ``--tolerance``, or when NEW did not score it; the last line counts them
-over all the shared prompt sets: the gate of a new default model (issue 15) is none worse.
+over all the shared prompt sets: the gate of a new default model is none worse.
 
 With ``--z``, a content is worse only when NEW is worse beyond noise: both runs hold each take (same prompts, same
 seeds, same order, the same per-take keys), so the test is paired, each distinct request once. Pass: McNemar's

@@ -3,7 +3,7 @@ false-alarm rate on windows whose captions ask for none of the checked verbs (an
 two more rows read the captions that ask for walking or running with the locomotion check (how often a caption's
 walk or run is what the motion does).
 
-    python scripts/verb_checks.py --data DIR [--values] [--json FILE]
+    python research/verb_checks.py --data DIR [--values] [--json FILE]
 
 DIR is a folder written by ``python -m mld_core data prepare cmu-joints``. Only windows captioned from the whole
 trial are read (a long trial's windows captioned by the detectors themselves would be circular), mirrored copies

@@ -1,6 +1,6 @@
 """Where does foot skating come from? Real walks vs VAE reconstructions vs diffusion samples, and root vs pose.
 
-    python scripts/skating_source.py --data /work/data/bandai [--model DIR] [--clips 24] [--json out.json]
+    python research/skating_source.py --data DIR [--model DIR] [--clips 24] [--json out.json]
 
 For each locomotion content of the test split (at most ``--clips`` clips each, their first max_frames frames) it
 prints the foot skating ratio (mld_core.eval.quality) and the per-take bone length SD (mm) of:
