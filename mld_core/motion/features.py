@@ -419,14 +419,16 @@ def mean_std(feature_arrays) -> tuple[np.ndarray, np.ndarray]:
     7 groups of FEATURE_GROUPS (HumanML3D divides those group means by 1.0, i.e. by nothing). A group
     with no variation gets MIN_STD so that normalising never divides by zero.
     """
-    arrays = [np.asarray(a, dtype=np.float64).reshape(-1, sk.FEATURE_DIM) for a in feature_arrays]
-    if not arrays or sum(len(a) for a in arrays) == 0:
+    arrays = [np.asarray(a).reshape(-1, sk.FEATURE_DIM) for a in feature_arrays]  # (T_i, 263) each, as given
+    frames = sum(len(a) for a in arrays)
+    if frames == 0:
         raise ValueError("mean_std needs at least one frame of features")
-    data = np.concatenate(arrays, axis=0)  # (N, 263)
-    if not np.isfinite(data).all():
+    if not all(np.isfinite(a).all() for a in arrays):
         raise ValueError("features contain NaN or infinite values")
-    mean = data.mean(axis=0)
-    std = data.std(axis=0)
+    # Two passes in float64, one clip at a time: a library of hours is never copied whole (numpy's mean and std
+    # over the concatenation, to float rounding).
+    mean = sum(a.sum(axis=0, dtype=np.float64) for a in arrays) / frames
+    std = np.sqrt(sum(((a - mean) ** 2).sum(axis=0) for a in arrays) / frames)
     for s in FEATURE_GROUPS.values():
         std[s] = max(std[s].mean(), MIN_STD)
     return mean.astype(np.float32), std.astype(np.float32)
