@@ -35,7 +35,7 @@ import tarfile
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -177,17 +177,19 @@ def iter_source(src: Path) -> Iterator[tuple[str, bytes]]:
             elif p.is_file() and p.name == "LICENSE":
                 yield f"LICENSE:{p.relative_to(src)}", p.read_bytes()
         return
+    for name, data in iter_tar(src, lambda n: _is_clip_member(n) or n.rsplit("/", 1)[-1] == "LICENSE"):
+        base = name.rsplit("/", 1)[-1]
+        yield (base[:-4], data) if base != "LICENSE" else (f"LICENSE:{name}", data)
+
+
+def iter_tar(src: Path, wanted: Callable[[str], bool]) -> Iterator[tuple[str, bytes]]:
+    """(member name, bytes) of every file in the tar archive ``src`` (streamed, any compression) whose name
+    ``wanted`` accepts; a corrupt or truncated archive is a PrepareError."""
     try:
         with tarfile.open(src, mode="r|*") as tar:
             for member in tar:
-                if not member.isfile():
-                    continue
-                base = member.name.rsplit("/", 1)[-1]
-                if _is_clip_member(member.name):
-                    f = tar.extractfile(member)
-                    yield base[:-4], f.read()
-                elif base == "LICENSE":
-                    yield f"LICENSE:{member.name}", tar.extractfile(member).read()
+                if member.isfile() and wanted(member.name):
+                    yield member.name, tar.extractfile(member).read()
     except (tarfile.TarError, EOFError, OSError) as exc:
         if isinstance(exc, (FileNotFoundError, PermissionError)):
             raise
@@ -251,6 +253,24 @@ def _init_worker() -> None:
         torch.set_num_threads(1)
     except Exception:  # pragma: no cover
         pass
+
+
+def write_splits(root: Path, splits: dict[str, list[str]]) -> list[str]:
+    """train/val/test.txt and all.txt of ``splits`` (name -> ids), and Mean/Std over the train split's features
+    (already under ``root``); returns every id, sorted. PrepareError when the train split is empty."""
+    from ..motion.features import mean_std
+
+    for name, ids in splits.items():
+        (root / f"{name}.txt").write_text("".join(f"{i}\n" for i in sorted(ids)), encoding="utf-8")
+    all_ids = sorted(i for ids in splits.values() for i in ids)
+    (root / "all.txt").write_text("".join(f"{i}\n" for i in all_ids), encoding="utf-8")
+    train = [np.load(root / "new_joint_vecs" / f"{i}.npy") for i in sorted(splits["train"])]
+    if not train:
+        raise PrepareError("the train split is empty")
+    mean, std = mean_std(train)
+    np.save(root / "Mean.npy", np.asarray(mean, dtype=np.float32))
+    np.save(root / "Std.npy", np.asarray(std, dtype=np.float32))
+    return all_ids
 
 
 def _write_clip(root: Path, cid: str, joints: np.ndarray, lines: list[str]) -> int:
@@ -465,8 +485,6 @@ def prepare_bandai(src, out, *, workers: int = 2, mirror: bool = True, progress:
     """
     from tqdm import tqdm
 
-    from ..motion import features as F
-
     src = Path(src).expanduser()
     out = Path(out).expanduser().absolute()
     kind = check_source(src)
@@ -538,18 +556,7 @@ def prepare_bandai(src, out, *, workers: int = 2, mirror: bool = True, progress:
                 splits[split_of[r["id"]]].append(cid)
                 clips_label[cid] = label
                 clips_style[cid] = r["style"]
-        for name, ids in splits.items():
-            (tmp / f"{name}.txt").write_text("".join(f"{i}\n" for i in sorted(ids)), encoding="utf-8")
-        all_ids = sorted(clips_label)
-        (tmp / "all.txt").write_text("".join(f"{i}\n" for i in all_ids), encoding="utf-8")
-
-        train_feats = [np.load(tmp / "new_joint_vecs" / f"{i}.npy") for i in sorted(splits["train"])]
-        if not train_feats:
-            raise PrepareError("the train split is empty")
-        mean, std = F.mean_std(train_feats)
-        np.save(tmp / "Mean.npy", np.asarray(mean, dtype=np.float32))
-        np.save(tmp / "Std.npy", np.asarray(std, dtype=np.float32))
-        del train_feats
+        all_ids = write_splits(tmp, splits)
 
         actions = {
             "classes": sorted(set(clips_label.values())),

@@ -25,7 +25,8 @@ import numpy as np
 
 from mld_core.data import captions as cap
 from mld_core.data.bandai import (FORMAT_VERSION, MANIFEST, TARGET_FPS, PrepareError, _write_clip, assign_splits,
-                                  check_out, resample_joints, source_fps, swap_into_place, written_files)
+                                  check_out, resample_joints, source_fps, swap_into_place, write_splits,
+                                  written_files)
 from mld_core.data.take_checks import implausible, leading_jump_frames
 from mld_core.motion.bvh import BVHError, read_bvh
 from mld_core.motion.skeleton import JOINT_NAMES
@@ -336,7 +337,6 @@ def find_bvh(src: Path) -> list[Path]:
 
 def prepare_bvh(src, out, options: LibraryOptions | None = None) -> dict:
     """Build the HumanML3D-format folder ``out`` from the BVH files under ``src``; returns the summary."""
-    from mld_core.motion import features as F
 
     options = options or LibraryOptions()
     src, out = Path(src).expanduser(), Path(out).expanduser().absolute()
@@ -383,16 +383,7 @@ def prepare_bvh(src, out, options: LibraryOptions | None = None) -> dict:
                 ids = [s["id"]] + (["M" + s["id"]] if options.mirror else [])
                 splits[by_file[r["file"]]] += ids
                 content.update(dict.fromkeys(ids, folder_of[r["file"]]))
-        for name, ids in splits.items():
-            (tmp / f"{name}.txt").write_text("".join(f"{i}\n" for i in sorted(ids)), encoding="utf-8")
-        all_ids = sorted(i for ids in splits.values() for i in ids)
-        (tmp / "all.txt").write_text("".join(f"{i}\n" for i in all_ids), encoding="utf-8")
-        train = [np.load(tmp / "new_joint_vecs" / f"{i}.npy") for i in sorted(splits["train"])]
-        if not train:
-            raise PrepareError("the train split is empty")
-        mean, std = F.mean_std(train)
-        np.save(tmp / "Mean.npy", np.asarray(mean, np.float32))
-        np.save(tmp / "Std.npy", np.asarray(std, np.float32))
+        all_ids = write_splits(tmp, splits)
         actions = {"classes": sorted(set(content.values())), "clips": content, "styles": {i: "" for i in all_ids}}
         (tmp / "actions.json").write_text(json.dumps(actions, indent=1) + "\n", encoding="utf-8")
         segs = [s for r in ok for s in _written(r)]

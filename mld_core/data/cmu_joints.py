@@ -31,7 +31,7 @@ import numpy as np
 from mld_core.data import captions as cap
 from mld_core.data import cmu_captions as cc
 from mld_core.data.bandai import (FORMAT_VERSION, MANIFEST, TARGET_FPS, PrepareError, _hash, _write_clip,
-                                  check_out, resample_joints, swap_into_place, written_files)
+                                  check_out, iter_tar, resample_joints, swap_into_place, write_splits, written_files)
 from mld_core.data.bvh_library import fill_missing_joints
 from mld_core.data.take_checks import implausible, leading_jump_frames
 from mld_core.motion.skeleton import JOINT_NAMES
@@ -105,22 +105,15 @@ def read_labels(text: str, where: str = "labels.tsv") -> dict[str, Trial]:
 def _archive_members(src: Path) -> tuple[str, dict[str, bytes]]:
     """(labels text, trial id -> .npy bytes) read from the .tar(.xz) archive in one pass."""
     labels, arrays = None, {}
-    try:
-        with tarfile.open(src, mode="r|*") as tar:
-            for member in tar:
-                if not member.isfile():
-                    continue
-                base = member.name.rsplit("/", 1)[-1]
-                if base == "labels.tsv":
-                    labels = tar.extractfile(member).read().decode("utf-8", errors="strict")
-                elif base.endswith(".npy") and "/joints/" in f"/{member.name}":
-                    arrays[base[:-4]] = tar.extractfile(member).read()
-    except (tarfile.TarError, EOFError, OSError, UnicodeDecodeError) as exc:
-        raise PrepareError(f"cannot read the archive {src}: {exc}") from None
-    except Exception as exc:  # lzma / zlib errors of a corrupt stream
-        if type(exc).__module__ in ("lzma", "zlib", "_lzma", "_bz2", "bz2", "gzip"):
-            raise PrepareError(f"cannot read the archive {src}: {exc}") from None
-        raise
+    for name, data in iter_tar(src, lambda n: n.endswith("/labels.tsv") or n == "labels.tsv"
+                               or (n.endswith(".npy") and "/joints/" in f"/{n}")):
+        if name.endswith(".npy"):
+            arrays[name.rsplit("/", 1)[-1][:-4]] = data
+        else:
+            try:
+                labels = data.decode("utf-8")
+            except UnicodeDecodeError as exc:
+                raise PrepareError(f"{src}: labels.tsv is not UTF-8 text ({exc.reason})") from None
     if labels is None:
         raise PrepareError(f"{src} holds no labels.tsv (expected the CMU joints archive)")
     return labels, arrays
@@ -304,7 +297,6 @@ def prepare_cmu_joints(src, out, *, mirror: bool = True, limit: int | None = Non
     from tqdm import tqdm
 
     from mld_core.data.verbs import verbs_in
-    from mld_core.motion import features as F
 
     src, out = Path(src).expanduser(), Path(out).expanduser().absolute()
     found = check_out(out)
@@ -343,17 +335,8 @@ def prepare_cmu_joints(src, out, *, mirror: bool = True, limit: int | None = Non
                     labels[cid] = verbs[0] if verbs else ("other" if w["captions"] else "uncaptioned")
                 if not w["captions"]:
                     uncaptioned += ids
-        for name, ids in splits.items():
-            (tmp / f"{name}.txt").write_text("".join(f"{i}\n" for i in sorted(ids)), encoding="utf-8")
-        all_ids = sorted(labels)
-        (tmp / "all.txt").write_text("".join(f"{i}\n" for i in all_ids), encoding="utf-8")
+        all_ids = write_splits(tmp, splits)
         (tmp / UNCAPTIONED).write_text("".join(f"{i}\n" for i in sorted(uncaptioned)), encoding="utf-8")
-        train = [np.load(tmp / "new_joint_vecs" / f"{i}.npy") for i in sorted(splits["train"])]
-        if not train:
-            raise PrepareError("the train split is empty")
-        mean, std = F.mean_std(train)
-        np.save(tmp / "Mean.npy", np.asarray(mean, np.float32))
-        np.save(tmp / "Std.npy", np.asarray(std, np.float32))
         actions = {"classes": sorted(set(labels.values())), "clips": labels,
                    "styles": {i: "" for i in all_ids}}
         (tmp / "actions.json").write_text(json.dumps(actions, indent=1) + "\n", encoding="utf-8")
