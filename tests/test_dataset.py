@@ -86,6 +86,19 @@ def test_load_split_filters_and_parses(tmp_path):
     assert no_max == ["000001", "000002", "000003", "000004", "M000001"]
 
 
+def test_uncaptioned_clips_are_kept_only_when_asked(tmp_path):
+    root = _write_folder(tmp_path / "h3d")
+    np.save(root / "new_joint_vecs" / "000005.npy", np.zeros((60, 263), np.float32))
+    (root / "texts" / "000005.txt").write_text("")  # a window nobody could caption
+    np.save(root / "new_joint_vecs" / "000006.npy", np.zeros((60, 263), np.float32))  # no texts file at all
+    (root / "val.txt").write_text("000004\n000005\n000006\n")
+    with pytest.warns(UserWarning, match="000006"):
+        assert [c.id for c in load_split(root, "val", min_frames=40)] == ["000004"]  # the denoiser's view
+    motion = load_split(root, "val", min_frames=40, captioned=False)  # the VAE's view
+    assert [c.id for c in motion] == ["000004", "000005", "000006"]
+    assert motion[1].captions == [] and motion[2].captions == []
+
+
 def test_kit_251_features_and_missing_actions(tmp_path):
     root = _write_folder(tmp_path / "kit", dim=251, actions=False)
     with pytest.warns(UserWarning):

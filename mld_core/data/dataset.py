@@ -161,13 +161,14 @@ def split_ids(root, split: str) -> list[str]:
 
 
 def load_split(root, split: str, min_frames: int = 1, max_frames: int | None = None,
-               fps: float | None = None) -> list[Clip]:
+               fps: float | None = None, captioned: bool = True) -> list[Clip]:
     """The clips of ``split`` (train/val/test/all) in a HumanML3D-format folder.
 
     Clips with fewer than ``min_frames`` feature rows, or (when ``max_frames`` is given) ``max_frames``
     or more (HumanML3D's loader uses min 40 and max 200 at 20 fps), are left out, as are ids whose
     feature or text file is missing or unreadable, whose features are not finite, or with no usable
     caption. Captions with a time span shorter than ``min_frames`` are dropped (as in HumanML3D).
+    ``captioned=False`` keeps clips without a caption too (their ``captions`` empty): motion the VAE learns from.
     ``fps`` defaults to 20 for 263-d features and 12.5 for 251-d (KIT-ML).
     """
     root = Path(root)
@@ -201,14 +202,16 @@ def load_split(root, split: str, min_frames: int = 1, max_frames: int | None = N
         try:
             caps = read_captions(root / "texts" / f"{cid}.txt")
         except OSError:
-            problems.append(f"{cid}: no texts/{cid}.txt")
-            continue
+            if captioned:
+                problems.append(f"{cid}: no texts/{cid}.txt")
+                continue
+            caps = []
         usable = []
         for c in caps:
             a, b = c.frames(rate, n)
             if c.whole_clip or (b - a >= min_frames and (max_frames is None or b - a < max_frames)):
                 usable.append(c)
-        if not usable:
+        if not usable and captioned:
             continue
         label = actions["clips"].get(cid) if actions else None
         style = actions["styles"].get(cid) if actions else None

@@ -229,8 +229,8 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
         check_resumed_modules(out, cfg.train_modules)
     # the repairs and stepping the run's model keeps: its first sitting's when resumed, else the fine-tuned folder's
     keep_from = load_config(out) if resume and (out / "config.json").is_file() else init
-    train = load_split(cfg.data, "train")
-    val = load_split(cfg.data, "val")
+    train = load_split(cfg.data, "train", captioned=False)  # uncaptioned motion teaches the autoencoder too
+    val = load_split(cfg.data, "val", captioned=False)
     if not train:
         raise ValueError(f"{cfg.data}: the train split is empty")
     rng = np.random.default_rng(cfg.seed)
