@@ -246,3 +246,47 @@ def test_segment_strips_follow_the_keys_at_the_scene_rate():
     assert segment_strips(segments, 130, 20, 20, 1) == [("walk", 1, 51), ("wave", 51, 91), ("bow", 91, 130)]
     assert segment_strips(segments, 130, 20, 24, 10) == [("walk", 10, 70), ("wave", 70, 118), ("bow", 118, 165)]
     assert segment_strips([("walk", 0), ("stop", 129)], 130, 20, 20, 1) == [("walk", 1, 130)]  # no empty strip
+
+
+def test_the_record_picks_the_map_and_the_road(fixtures, rigify_metarig):
+    canonical = rt.RigRest.load(fixtures / "rigs" / "canonical.json")
+    record = rw.RigRecord(canonical, rotation_modes={n: "QUATERNION" for n in canonical.names}, fps=24.0,
+                          frame_start=5)
+    assert record.canonical and record.stored_map() is None
+    plan = rw.plan_of(record, rw.RetargetSettings())
+    assert plan.exact and plan.bone_map.source == "canonical" and (plan.fps, plan.frame_start) == (24.0, 5)
+    assert not rw.plan_of(record, rw.RetargetSettings(reduce=True)).exact  # reduction: through the solve
+    euler = rw.RigRecord(canonical, rotation_modes={"pelvis": "XYZ"})
+    assert not rw.plan_of(euler, rw.RetargetSettings(rotation_mode="KEEP")).exact  # keeps the rig's Euler bone
+    given = rw.canonical_map(canonical.names)
+    assert not rw.plan_of(record, rw.RetargetSettings(), bone_map=given).exact  # a given map: through the solve
+    # a foreign rig: the detected map, unless the panel stored one (its rows win)
+    metarig = rw.RigRecord(rigify_metarig)
+    detected = bm.detect_bone_map(rigify_metarig.names, list(rigify_metarig.parents)).bone_map
+    assert not metarig.canonical and metarig.bone_map().joints == detected.joints
+    rows = tuple((j, {"pelvis": "spine", "head": ""}.get(j, b)) for j, b in detected.joints.items())
+    stored = rw.RigRecord(rigify_metarig, map_rows=rows, map_extras='{"source": "user"}')
+    assert stored.bone_map().source == "user" and stored.bone_map().joints["pelvis"] == "spine"
+    assert "head" not in stored.bone_map().joints and not rw.plan_of(stored, rw.RetargetSettings()).exact
+
+
+def test_plan_keys_keys_every_take_or_names_what_is_missing(fixtures, rigify_metarig):
+    joints = np.load(fixtures / "rigs" / "source_takes.npz")["dataset-2_wave-right-hand_normal_026_joints"]
+    take = SimpleNamespace(joints=joints.astype(np.float64), local_quats=None, fps=20, frames=len(joints),
+                           contacts=None, segments=[("wave", 0), ("bow", 30)])
+    record = rw.RigRecord(rigify_metarig, fps=24.0, frame_start=1)
+    settings = rw.RetargetSettings(reduce=True, nla=True)
+    plan, planned = rw.plan_keys([take, take], record, settings)
+    assert [p.take for p in planned] == [take, take] and plan.bone_map.source == "rigify_metarig"
+    direct = rw.take_keys(rw.Take(take.joints, None, None, 20), rigify_metarig, plan.bone_map, settings, fps=24.0,
+                          frame_start=1)
+    assert [c.data_path for c in planned[0].keys.curves] == [c.data_path for c in direct.curves]
+    np.testing.assert_array_equal(planned[1].keys.curves[3].values, direct.curves[3].values)
+    props = planned[0].properties
+    assert props["mld_retargeted"] == 1 and props["mld_exact"] == 0 and props["mld_bone_map"] == "rigify_metarig"
+    assert props["mld_keys"] == planned[0].keys.num_keys and props["mld_scene_fps"] == 24.0
+    assert planned[0].strips == rw.segment_strips(take.segments, take.frames, 20, 24.0, 1)
+    no_knee = rw.RigRecord(rigify_metarig, map_rows=(("pelvis", "spine"),))
+    with pytest.raises(ValueError, match="Nothing was keyed") as err:
+        rw.plan_keys([take], no_knee, rw.RetargetSettings())
+    assert err.value.args[0].startswith(f"{rigify_metarig.name!r}: ") and "left_knee" in err.value.args[0]

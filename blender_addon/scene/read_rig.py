@@ -1,6 +1,8 @@
-"""The thin bpy side of retargeting: read an armature's rest pose into arrays, build an armature from arrays.
+"""The thin bpy side of retargeting: read an armature (and its scene) into plain records, build an armature from
+arrays.
 
-Everything else (the math) lives in :mod:`retarget`, :mod:`bone_maps` and :mod:`keyedit`, which never import bpy.
+``read_record`` is the keying road's one read of the file: everything keying needs, as a bpy-free
+``keying.RigRecord``. Everything else (the math) lives in :mod:`retarget`, :mod:`bone_maps` and :mod:`keyedit`, which never import bpy.
 bpy is imported inside the functions, so this module imports anywhere.
 """
 
@@ -8,7 +10,24 @@ from __future__ import annotations
 
 import numpy as np
 
+from mld_core.rig.keying import RigRecord
 from mld_core.rig.retarget import RigRest
+
+
+def scene_fps(scene) -> float:
+    """The scene's frame rate (fps / fps_base)."""
+    return scene.render.fps / (scene.render.fps_base or 1.0)
+
+
+def read_record(obj, scene) -> RigRecord:
+    """What keying ``obj`` in ``scene`` needs, read once (main thread): the rest, the bone map the Retarget panel
+    stored on it (``obj.mld_retarget``: rows and extras), each pose bone's rotation mode, the scene's rate and
+    first frame."""
+    modes = rotation_modes(obj)
+    rest = read_rig(obj)
+    data = getattr(obj, "mld_retarget", None)
+    rows = tuple((row.joint, row.bone) for row in data.rows) if data is not None else ()
+    return RigRecord(rest, rows, data.extras if data is not None else "", modes, scene_fps(scene), scene.frame_start)
 
 
 def read_rig(obj) -> RigRest:

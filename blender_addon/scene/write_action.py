@@ -1,4 +1,6 @@
-"""Writing keyframes in bulk (bpy; main thread only).
+"""Writing keyframes in bulk (bpy; main thread only): the keying road's last stage, :func:`write_takes`, writes
+every planned take (``keying.TakeKeys``) as a new Action, keys IK controls to match (control rigs) and fills
+an :class:`ApplyReport`.
 
 Works with slotted Actions (Blender 4.4+, the only kind in 5.0: ``Action.fcurves`` is gone there) and with
 the older flat Actions of 4.2/4.3. Every F-curve gets its keys with one ``keyframe_points.add`` and one
@@ -11,9 +13,11 @@ not assigned survive saving.
 
 from __future__ import annotations
 
+import time
+from dataclasses import dataclass, field
+
 import bpy
 import numpy as np
-
 
 
 def slotted_actions() -> bool:
@@ -261,3 +265,79 @@ def action_slot(action):
     if not slotted_actions() or not len(action.slots):
         return None
     return action.slots[0]
+
+
+# -- the keying road's write stage ----------------------------------------------------------------------------
+@dataclass
+class ApplyReport:
+    actions: list = field(default_factory=list)  # Action names, in take order
+    frames: int = 0  # scene frames of the first take
+    fps: float = 0.0
+    key_seconds: float = 0.0  # time spent computing and writing keys
+    keys: int = 0  # keyframes written in total
+    retargeted: bool = False  # True: through keyedit (bone map), False: the canonical exact path
+    bone_map: str = ""  # where the map came from (preset name, "auto", "user", "file" ...)
+    reduction_ratios: list = field(default_factory=list)  # per take: keys kept / keys on every frame (1.0: none)
+    nla: bool = False
+    ik_keys: int = 0  # keys on IK controls matching the FK pose (control rigs: Rigify)
+
+    @property
+    def reduction_ratio(self) -> float:
+        return sum(self.reduction_ratios) / len(self.reduction_ratios) if self.reduction_ratios else 1.0
+
+
+def write_takes(obj, scene, plan, planned, *, assign: bool = True, ik_controls: bool = True,
+                set_frame_range: bool = False) -> ApplyReport:
+    """One new Action per planned take (``keying.TakeKeys`` under ``plan``, a ``keying.KeyPlan``), named from its
+    prompt and seed, the first assigned if ``assign`` (or each pushed to NLA); ``ik_controls``: also key the map's
+    IK controls to match the FK pose. Then the panel's last reduction and, with ``set_frame_range``, the scene's
+    end frame. Returns what was written."""
+    from ..worker import naming
+
+    retargeted, bone_map = not plan.exact, plan.bone_map
+    report = ApplyReport(fps=plan.fps, nla=plan.settings.nla, retargeted=retargeted,
+                         bone_map=bone_map.source if retargeted else "")
+    existing = {a.name for a in bpy.data.actions}
+    for index, planned_take in enumerate(planned):
+        take, keys = planned_take.take, planned_take.keys
+        t0 = time.perf_counter()
+        name = naming.unique_name(take.name or naming.action_name(take.prompt, take.seed), existing)
+        existing.add(name)
+        action = keys_to_action(obj, keys, name, assign=assign and index == 0, nla=plan.settings.nla,
+                                properties={**take.provenance(), **planned_take.properties},
+                                pose_properties=bone_map.pose_properties if retargeted else {},
+                                segments=planned_take.strips)
+        if retargeted and ik_controls and bone_map.ik_controls:
+            report.ik_keys += key_ik_controls(obj, scene, action, keys, bone_map.ik_controls)
+        report.reduction_ratios.append(float(keys.stats.get("reduction_ratio", 1.0)))
+        report.key_seconds += planned_take.seconds + time.perf_counter() - t0
+        report.actions.append(action.name)
+        report.keys += keys.num_keys
+        if index == 0:
+            report.frames = keys.num_frames
+    panel = getattr(scene, "mld_motion", None)
+    if panel is not None and hasattr(panel, "last_reduction"):
+        panel.last_reduction = report.reduction_ratio if retargeted and plan.settings.reduce else 1.0
+    if set_frame_range and report.frames:
+        scene.frame_end = scene.frame_start + report.frames - 1
+    return report
+
+
+def key_ik_controls(obj, scene, action, keys, chains) -> int:
+    """Key ``chains``' IK controls into ``action`` to match its FK pose (played for it on ``scene``, the take's own,
+    then the armature's assignment restored); returns the keys written."""
+    from . import ik_controls
+
+    ad = obj.animation_data or obj.animation_data_create()
+    before = (ad.action, getattr(ad, "action_slot", None))
+    assign_action(obj, action)
+    try:
+        frames = keys.frame_start + np.arange(keys.num_frames, dtype=np.float64)
+        curves = ik_controls.ik_curves(obj, scene, chains, frames)
+        writer = ChannelWriter.of(action, obj)
+        for curve in curves:
+            write_keys(writer.fcurve(curve.data_path, curve.index, curve.group), curve.frames, curve.values,
+                       keys.interpolation, handle_type=keys.handle_type, auto_smoothing=keys.auto_smoothing)
+    finally:
+        assign_action(obj, before[0], before[1] if before[0] is not None else None)
+    return int(sum(len(c.frames) for c in curves))

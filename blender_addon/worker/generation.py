@@ -111,7 +111,7 @@ class GenerationResult:
     load_s: float = 0.0
     generate_s: float = 0.0
     pose_s: float = 0.0
-    planned: tuple | None = None  # (KeyPlan, [(take, keys, seconds)]): keys computed here for request.extra["key_plan"]
+    planned: tuple | None = None  # (KeyPlan, [keying.TakeKeys]): keys computed here for request.extra["key_plan"]
 
     @property
     def total_s(self) -> float:

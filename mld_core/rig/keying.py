@@ -7,11 +7,14 @@ key on every frame so each joint lands exactly on the generated position (``cano
 goes through the retarget solve and ``keyframes`` (resample, foot lock, reduction, rotation modes).
 Also here: :func:`map_problem` (one sentence naming missing bones, for polls and errors), a detection cache, and
 :func:`take_contacts`, and :func:`segment_strips` (where a sequence's segments lie in the scene's frames).
+
+The add-on's road through here: a :class:`RigRecord` (read from the scene once) -> :func:`plan_keys` (the bone map,
+the road, every take's keys, its Action's properties and NLA strips) -> the writer.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Iterable, Mapping, Sequence
 
 import numpy as np
@@ -245,9 +248,49 @@ def take_keys(take: Take, rig: RigRest, bone_map: bm.BoneMap, settings: Retarget
 
 
 @dataclass(frozen=True)
+class RigRecord:
+    """An armature and its scene as keying needs them, read from the file once on Blender's main thread
+    (``scene/read_rig.read_record``), then planned from anywhere: the rest (names, parents, matrices), the bone map
+    the Retarget panel stored on it (its rows and extras; none: no row names a bone), each pose bone's rotation
+    mode, and the scene's frame rate (fps / fps_base) and first frame."""
+
+    rig: RigRest
+    map_rows: tuple = ()  # ((joint, bone), ...) as the panel stores them
+    map_extras: str = ""
+    rotation_modes: Mapping[str, str] = field(default_factory=dict)
+    fps: float = 24.0
+    frame_start: float = 1.0
+
+    @property
+    def canonical(self) -> bool:
+        """True when the armature has every bone of the canonical skeleton."""
+        from mld_core.motion.skeleton import JOINT_NAMES
+
+        return all(name in self.rig for name in JOINT_NAMES)
+
+    def stored_map(self) -> bm.BoneMap | None:
+        """The map stored by the Retarget panel, or None."""
+        if not any(bone for _, bone in self.map_rows):
+            return None
+        from mld_core.rig.bone_map_rows import rows_to_map
+
+        return rows_to_map(self.map_rows, self.map_extras)
+
+    def bone_map(self) -> bm.BoneMap:
+        """The map the armature is keyed with: the stored one; else the canonical preset on the canonical
+        armature; else the detected one (cached per set of bone names and parents)."""
+        stored = self.stored_map()
+        if stored is None and self.canonical:
+            return canonical_map(self.rig.names)
+        names = list(self.rig.names)
+        parents = [names[p] if p >= 0 else None for p in self.rig.parents]
+        return stored or detections.get(names, parents).bone_map
+
+
+@dataclass(frozen=True)
 class KeyPlan:
-    """Everything keying needs from an armature, read once on Blender's main thread (``key_takes.read_plan``), so
-    that the keys themselves can be computed anywhere (the add-on's worker thread, for Live Preview)."""
+    """Everything keying decided for an armature (:func:`plan_of` a :class:`RigRecord`), so that the keys
+    themselves can be computed anywhere (the add-on's worker thread, for Live Preview)."""
 
     rig: RigRest
     bone_map: bm.BoneMap
@@ -259,9 +302,45 @@ class KeyPlan:
     exact_locations: bool
 
 
-def plan_takes(takes: Sequence, plan: KeyPlan) -> list:
-    """[(take, keys, seconds)] for generated takes (the add-on's generation.Take: joints, local_quats, fps and
-    foot contacts) under ``plan``; raises what take_keys raises."""
+def plan_of(record: RigRecord, settings: RetargetSettings, bone_map: bm.BoneMap | None = None,
+            exact: bool = True) -> KeyPlan:
+    """How ``record``'s armature is keyed under ``settings``: its bone map (``bone_map`` when given, else its own)
+    and its road (the canonical armature's exact road, or the retarget solve)."""
+    modes = dict(record.rotation_modes)
+    on_exact_road = exact_road(record.canonical, bone_map is not None, settings, modes)
+    bone_map = bone_map if bone_map is not None else record.bone_map()
+    return KeyPlan(record.rig, bone_map, settings, record.fps, record.frame_start, on_exact_road, modes, exact)
+
+
+@dataclass
+class TakeKeys:
+    """One take planned: its keys, the seconds they took, the road's custom properties for its Action (added to
+    the take's own provenance when written) and its NLA strips (a prompt sequence pushed to NLA; else None)."""
+
+    take: object
+    keys: ke.BakedKeys
+    seconds: float
+    properties: dict
+    strips: list | None = None
+
+
+def road_properties(plan: KeyPlan, keys: ke.BakedKeys) -> dict:
+    """How a take was keyed, as its Action's custom properties."""
+    retargeted = not plan.exact
+    props = dict(mld_scene_fps=float(plan.fps), mld_exact=int(bool(plan.exact_locations) and not retargeted),
+                 mld_retargeted=int(retargeted))
+    if retargeted:
+        s = plan.settings
+        props.update(mld_bone_map=plan.bone_map.source, mld_reduce=int(s.reduce),
+                     mld_tolerance_deg=float(s.tolerance_deg), mld_rotation_mode=s.rotation_mode,
+                     mld_foot_lock=int(s.foot_lock), mld_keys=int(keys.num_keys),
+                     mld_reduction_ratio=float(keys.stats["reduction_ratio"]))
+    return props
+
+
+def plan_takes(takes: Sequence, plan: KeyPlan) -> list[TakeKeys]:
+    """One :class:`TakeKeys` per generated take (the add-on's generation.Take: joints, local_quats, fps, foot
+    contacts, segments) under ``plan``; raises what take_keys raises."""
     import time
 
     planned = []
@@ -271,8 +350,23 @@ def plan_takes(takes: Sequence, plan: KeyPlan) -> list:
         road_take = Take(take.joints, take.local_quats, contacts, take.fps)
         keys = take_keys(road_take, plan.rig, plan.bone_map, plan.settings, fps=plan.fps, frame_start=plan.frame_start,
                          exact=plan.exact, current_modes=plan.current_modes, exact_locations=plan.exact_locations)
-        planned.append((take, keys, time.perf_counter() - t0))
+        seconds = time.perf_counter() - t0
+        segments = getattr(take, "segments", None)
+        strips = segment_strips(segments, take.frames, take.fps, plan.fps, keys.frame_start) \
+            if segments and plan.settings.nla else None
+        planned.append(TakeKeys(take, keys, seconds, road_properties(plan, keys), strips))
     return planned
+
+
+def plan_keys(takes: Sequence, record: RigRecord, settings: RetargetSettings, bone_map: bm.BoneMap | None = None,
+              exact: bool = True) -> tuple[KeyPlan, list[TakeKeys]]:
+    """Every take's keys for ``record``'s armature, computed before anything in the file changes: (the plan, one
+    :class:`TakeKeys` per take). A bone map that does not fit raises ValueError naming what is missing."""
+    plan = plan_of(record, settings, bone_map, exact)
+    try:
+        return plan, plan_takes(takes, plan)
+    except bm.BoneMapError as exc:
+        raise ValueError(missing_message(exc, record.rig.name)) from None
 
 
 def segment_strips(segments: Sequence[tuple[str, int]], frames: int, fps: float, scene_fps: float,
