@@ -20,20 +20,22 @@ from typing import Callable, Iterable, Mapping, Sequence
 import numpy as np
 import torch
 
-from mld_core import content_anchor, inputs, side_contrast
-from mld_core.coverage import INDEX_NAME, load_for_model, normalise, unavailable
+from mld_core import inputs
+from mld_core.condition import content_anchor, side_contrast
+from mld_core.condition.coverage import INDEX_NAME, load_for_model, normalise, unavailable
 from mld_core.inputs import InputError
 from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, CheckpointError, ModelConfig, load_config,
                                  load_weights)
 from mld_core.models.denoiser import LatentDenoiser
-from mld_core.constraints import Constraints, bone_stretch, brief, planted_feet, planted_foot_speed, root_speed
+from mld_core.take_fixes.constraints import (Constraints, bone_stretch, brief, planted_feet, planted_foot_speed,
+                                             root_speed)
 from mld_core.eval.quality import REAL_JERK_P95, seam_jerk
 from mld_core.motion.features import FOOT_CONTACT, features_to_joints, mirror_text
-from mld_core.motion.repair import RepairConfig, lock_feet, repair_features
+from mld_core.take_fixes.repair import RepairConfig, lock_feet, repair_features
 from mld_core.models.transformer import native_bf16, packing_available
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import DDIMScheduler, LCMScheduler
-from mld_core.stepping import SteppingConfig, keep_cost, slide_cost, sliding_share, valid_frames
+from mld_core.take_fixes.stepping import SteppingConfig, keep_cost, slide_cost, sliding_share, valid_frames
 
 
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16}
@@ -100,7 +102,7 @@ def _check_constraints(constraints, frames: list[int]) -> None:
     if constraints is None:
         return
     if not isinstance(constraints, Constraints):
-        raise InputError(f"constraints must be a mld_core.constraints.Constraints, e.g. Constraints([Loop()]), got "
+        raise InputError(f"constraints must be a mld_core.take_fixes.constraints.Constraints, e.g. Constraints([Loop()]), got "
                          f"{type(constraints).__name__}")
     if constraints and len(set(frames)) > 1:
         raise InputError("constraints need every motion of a call to have the same length")
@@ -168,8 +170,8 @@ class MLDPipeline:
                                                 d.fresh_noise)
         self._text_cache: OrderedDict = OrderedDict()  # prompt -> its TextEmbedding (one row, its own tokens)
         self._draft_text_cache: OrderedDict = OrderedDict()  # the same for the Draft's text encoder
-        self.coverage_index = None  # mld_core.coverage.CoverageIndex, from the model folder's coverage_index.npz
-        self.content_anchor = None  # mld_core.content_anchor.ContentAnchor, from content_anchor.safetensors
+        self.coverage_index = None  # mld_core.condition.coverage.CoverageIndex, from the model folder's coverage_index.npz
+        self.content_anchor = None  # mld_core.condition.content_anchor.ContentAnchor, from content_anchor.safetensors
         self._quality = None  # mld_core.eval.quality.QualityScorer, loaded on first use
         mean, std = config.mean_std
         self.mean, self.std = mean, std
@@ -291,7 +293,7 @@ class MLDPipeline:
 
     def step_feet(self, z: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
         """Sampled latents z_0 (B, n, d) refined so that the takes step instead of sliding (config ``stepping``;
-        mld_core.stepping): Adam steps through the decoder on the feet's ground slide, keeping each take's root
+        mld_core.take_fixes.stepping): Adam steps through the decoder on the feet's ground slide, keeping each take's root
         velocity, turning and stride. Takes that hardly slide are returned as sampled; each row is refined on its
         own (a batch equals single runs)."""
         cfg = self.config.stepping
@@ -486,7 +488,7 @@ class MLDPipeline:
 
     def _anchored(self, prompts: list, emb, encoder):
         """``emb`` (``encoder``'s embeddings of ``prompts``) with its pooled vectors moved by the content anchor
-        (mld_core.content_anchor), when the model has one and config ``content_anchor.weight`` is above 0. The Draft's
+        (mld_core.condition.content_anchor), when the model has one and config ``content_anchor.weight`` is above 0. The Draft's
         text encoder, distilled from the Final's, shares its vector space and so its anchor. Runs on the CPU."""
         settings = self.config.content_anchor
         if self.content_anchor is None or settings.weight == 0 or self.content_anchor.dim != emb.pooled.shape[-1]:
@@ -501,7 +503,7 @@ class MLDPipeline:
 
     def _side_contrasted(self, prompts: list, emb, encoder):
         """``emb`` (``encoder``'s anchored embeddings of ``prompts``) with the pooled vector of each prompt that names
-        a side pushed away from its mirrored wording's (mld_core.side_contrast), when config ``side_contrast`` is
+        a side pushed away from its mirrored wording's (mld_core.condition.side_contrast), when config ``side_contrast`` is
         above 0."""
         weight = self.config.side_contrast
         if not weight:
@@ -531,7 +533,7 @@ class MLDPipeline:
 
     # -- prompt coverage and take quality ------------------------------------------------------------------------
     def coverage(self, prompts: str | Sequence[str]) -> list:
-        """Per prompt a ``mld_core.coverage.Coverage``: score, verdict known / near / unknown, the 3 nearest training
+        """Per prompt a ``mld_core.condition.coverage.Coverage``: score, verdict known / near / unknown, the 3 nearest training
         captions and the model's known contents (verdict "unavailable" for a folder without a coverage index)."""
         prompts = _prompt_list(prompts)
         index = self.coverage_index
@@ -567,9 +569,9 @@ class MLDPipeline:
         Draft in bf16: to within bf16 rounding, up to about 2 cm.) ``unconditional`` samples with the null
         condition (the prompts then only label the rows). ``rank`` scores every row (``out.badges``) and orders
         each prompt's variants best first (mld_core.eval.quality.best_first). ``constraints`` (a
-        ``mld_core.constraints.Constraints``: poses to hit, a root path, a loop) refines each sampled latent to
+        ``mld_core.take_fixes.constraints.Constraints``: poses to hit, a root path, a loop) refines each sampled latent to
         meet them; ``out.residuals`` says how well each row did. ``repair`` applies the model's repairs (config
-        ``repair``: one skeleton, planted feet; mld_core.motion.repair) to free takes. ``step`` (default: as
+        ``repair``: one skeleton, planted feet; mld_core.take_fixes.repair) to free takes. ``step`` (default: as
         ``repair``) refines each Final take's sampled latent until its feet step (config ``stepping``); the
         constraints are then met with the feet's slide in their cost. ``draft`` samples with
         the model's Draft denoiser (config ``draft``: a few consistency steps, the last of them guided steps of
@@ -766,7 +768,7 @@ class MLDPipeline:
         free take of its own. Returns one row; ``timings["segments"]`` holds each segment's first frame, and
         ``seams`` each seam's largest joint jerk on the joined take against real motion's (``quality.seam_jerk``):
         that, not the Continuation's residual before the fade, is what the seam looks like."""
-        from mld_core.constraints import Continuation
+        from mld_core.take_fixes.constraints import Continuation
 
         t_start = time.perf_counter()
         segments, overlap = self._sequence_segments(segments, overlap_s)

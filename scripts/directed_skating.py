@@ -21,7 +21,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mld_core.constraints import Constraints, Loop, RootPath  # noqa: E402
+from mld_core.take_fixes.constraints import Constraints, Loop, RootPath  # noqa: E402
 from mld_core.eval.quality import foot_skating_ratio  # noqa: E402
 
 PATHS = {  # name: (prompt, seconds, frames of the path's points, their (x, z) in metres)

@@ -36,7 +36,7 @@ SIDED_SEED = 3  # a seed whose first draw of TURN_LEFT at 2 s misses the side, s
 
 
 def _directed():
-    from mld_core.constraints import Constraints, Loop, PoseKeys, RootPath
+    from mld_core.take_fixes.constraints import Constraints, Loop, PoseKeys, RootPath
 
     keys = PoseKeys({20: {"pelvis": [0.0, 0.9, 0.5], "right_wrist": [-0.3, 1.5, 0.7]}})
     return Constraints([keys, RootPath([0, 39], [[0.0, 0.0], [0.0, 1.0]]), Loop()])

@@ -1,4 +1,4 @@
-"""Repairs of generated takes (mld_core.motion.repair): planted feet that do not slide, locked feet, one skeleton
+"""Repairs of generated takes (mld_core.take_fixes.repair): planted feet that do not slide, locked feet, one skeleton
 per take."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ from mld_core.checkpoint import CheckpointError, load_config
 from mld_core.eval.quality import foot_skating_ratio
 from mld_core.motion import skeleton as sk
 from mld_core.motion.features import FOOT_CONTACT, RIC, features_to_joints, joints_to_features
-from mld_core.motion.repair import (RepairConfig, double_support_share, features_with_bone_lengths, foot_hold_shifts,
-                                    lock_feet, plant_feet, repair_features, two_bone_ik)
+from mld_core.take_fixes.repair import (RepairConfig, double_support_share, features_with_bone_lengths,
+                                        foot_hold_shifts, lock_feet, plant_feet, repair_features, two_bone_ik)
 from mld_core.rig.fidelity import knee_bend_deg
 from mld_core.testing import tiny_model
 

@@ -1,4 +1,4 @@
-"""Stepping (mld_core.stepping, MLDPipeline.step_feet): sampled latents refined so that takes step instead of
+"""Stepping (mld_core.take_fixes.stepping, MLDPipeline.step_feet): sampled latents refined so that takes step instead of
 sliding, keeping their path, facing and stride."""
 
 from __future__ import annotations
@@ -13,7 +13,8 @@ import torch
 from mld_core.checkpoint import CheckpointError, load_config
 from mld_core.eval.quality import foot_skating_ratio
 from mld_core.motion.features import features_to_joints
-from mld_core.stepping import SteppingConfig, keep_cost, slide_cost, sliding_share, stride, facing, valid_frames
+from mld_core.take_fixes.stepping import (SteppingConfig, keep_cost, slide_cost, sliding_share, stride, facing,
+                                         valid_frames)
 from mld_core.testing import tiny_model
 
 WALK = "dataset-2_walk-turn-left_normal_027"
@@ -121,7 +122,7 @@ def test_stepping_lowers_the_cost_and_never_raises_a_takes(tmp_path, lr, gain):
 
 
 def test_constrained_takes_and_sequence_segments_are_stepped_too(tmp_path):
-    from mld_core.constraints import Constraints, RootPath
+    from mld_core.take_fixes.constraints import Constraints, RootPath
 
     pipe = _pipe(tmp_path, min_slide_share=0.0, lr=0.05)
     path = Constraints([RootPath([0, 39], np.array([[0.0, 0.0], [0.0, 1.0]]))], steps=2, feature_steps=2)
@@ -221,7 +222,7 @@ def _met_and_skating(pipe, out, constraints):
 
 
 def test_a_constrained_take_keeps_the_unstepped_one_only_if_it_skates_less_and_meets_as_much(tmp_path):
-    from mld_core.constraints import Constraints, Loop, RootPath
+    from mld_core.take_fixes.constraints import Constraints, Loop, RootPath
 
     pipe = _pipe(tmp_path, min_slide_share=0.0, lr=0.5, steps=30)
     outcomes = []
@@ -249,7 +250,7 @@ def test_a_constrained_take_keeps_the_unstepped_one_only_if_it_skates_less_and_m
 
 
 def test_meeting_with_and_without_the_slide_in_one_batch_equals_meeting_each_alone(tmp_path):
-    from mld_core.constraints import Constraints, Loop
+    from mld_core.take_fixes.constraints import Constraints, Loop
 
     pipe = _pipe(tmp_path, min_slide_share=0.0, lr=0.5, steps=30)
     constraints = Constraints([Loop()], steps=4, feature_steps=4)
@@ -280,7 +281,7 @@ def test_a_stepped_walk_backwards_of_the_bundled_model_skates_less():
 
 @pytest.mark.slow
 def test_walks_on_a_path_walk_cycles_and_sequences_of_the_bundled_model_skate_less_stepped():
-    from mld_core.constraints import Constraints, Loop, RootPath
+    from mld_core.take_fixes.constraints import Constraints, Loop, RootPath
     from mld_core.pipeline import MLDPipeline
 
     pipe = MLDPipeline.from_pretrained()
