@@ -1,5 +1,6 @@
 """Do directed takes step? Foot skating of takes on a root path, looped takes and prompt sequences, with and without
-stepping (MLDPipeline.step_feet), on the bundled model (a measurement: prints a table, asserts nothing).
+stepping (mld_core.take_fixes.stepping.step_feet), on the bundled model (a measurement: prints a table, asserts
+nothing).
 
     .venv/bin/python scripts/directed_skating.py [--model DIR] [--seeds 8] [--threads 1] [--json out.json]
 

@@ -14,8 +14,8 @@ prints the foot skating ratio (mld_core.eval.quality) and the per-take bone leng
   mld_core.take_fixes.repair's bone lengths alone, root re-estimation from the planted feet with no travel kept, the
   model's configured repairs without lock_feet, and with it;
 - ``stepped`` / ``stepped, repaired (default)``: the same samples' latents refined so that their feet step
-  (MLDPipeline.step_feet, config ``stepping``), decoded as they are, then with the model's repairs: the pipeline's
-  output.
+  (take_fixes.stepping.step_feet, config ``stepping``), decoded as they are, then with the model's repairs: the
+  pipeline's output.
 
 Besides skating, bone length SD, jerk and travel it prints the share of frames with a straight knee (either knee
 bent less than 3 degrees), which the leg IK of lock_feet raises where it holds a foot out of the leg's reach.

@@ -1,5 +1,5 @@
-"""Side redraws (MLDPipeline.redraw_off_side, config side_redraws): a free take that misses the side its prompt names
-is drawn again from its seed, and the user is told which draw they got and why."""
+"""Side redraws (mld_core.take_fixes.side_redraw, config side_redraws): a free take that misses the side its prompt
+names is drawn again from its seed, and the user is told which draw they got and why."""
 
 from __future__ import annotations
 

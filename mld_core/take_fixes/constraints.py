@@ -1,6 +1,6 @@
 """What a take must hit, as differentiable costs on its joints: poses at given frames, a root path on the ground,
-a loop. The pipeline refines its sampled latent, then the decoded features, against them (stage 5 of
-``MLDPipeline.__call__``, ``MLDPipeline.meet_constraints``); the free path never touches this module.
+a loop. Take fix 2 (``meet_constraints.py``) refines a take's sampled latent, then its decoded features, against
+them; the free path never touches this module.
 
 Joints are the pipeline's output frame: metres, Y up, the root starting at the origin facing +Z. Frames are model
 frames (20 fps); files with another fps are converted when read (:func:`read_keys`, :func:`read_path`). Each
