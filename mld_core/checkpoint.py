@@ -14,15 +14,15 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from mld_core import side_contrast
-from mld_core.content_anchor import ContentAnchorConfig
+from mld_core.condition import side_contrast
+from mld_core.condition.content_anchor import ContentAnchorConfig
 from mld_core.fileio import atomic_write
 from mld_core.inputs import MAX_SIDE_REDRAWS
 from mld_core.models.denoiser import DenoiserConfig
 from mld_core.models.vae import VAEConfig
-from mld_core.motion.repair import RepairConfig
+from mld_core.take_fixes.repair import RepairConfig
 from mld_core.schedulers import LCMScheduler, SchedulerConfig
-from mld_core.stepping import SteppingConfig
+from mld_core.take_fixes.stepping import SteppingConfig
 
 FORMAT = "mld-core-model"
 FORMAT_VERSION = 1
@@ -83,11 +83,11 @@ class ModelConfig:
     guidance_scale: float = 4.0
     num_inference_steps: int = 50
     skeleton: dict = field(default_factory=dict)
-    repair: RepairConfig = field(default_factory=RepairConfig)  # mld_core.motion.repair, on free 263-d takes
-    stepping: SteppingConfig = field(default_factory=SteppingConfig)  # mld_core.stepping: free takes' latents step
+    repair: RepairConfig = field(default_factory=RepairConfig)  # mld_core.take_fixes.repair, on free 263-d takes
+    stepping: SteppingConfig = field(default_factory=SteppingConfig)  # mld_core.take_fixes.stepping: latents step
     side_redraws: int = 2  # a free take that misses the side its prompt names is drawn again, at most this often
     content_anchor: ContentAnchorConfig = field(default_factory=ContentAnchorConfig)  # prompts' vectors moved
-    side_contrast: float = 0.0  # a sided prompt's vector pushed away from its mirrored wording's (mld_core.side_contrast)
+    side_contrast: float = 0.0  # a sided prompt's vector pushed from its mirror's (mld_core.condition.side_contrast)
     draft: DraftConfig | None = None  # a Draft denoiser in draft.safetensors (pipe(..., draft=True))
     provenance: dict = field(default_factory=dict)
 

@@ -80,7 +80,7 @@ SEQUENCE_OVERLAP_S = 0.5  # each later segment also makes the previous one's las
 
 def _sequence_lines(args) -> list[PromptLine]:
     """--sequence segments as prompt lines (their seconds as frames); refused with what a sequence cannot take."""
-    from mld_core.constraints import sequence_from_data
+    from mld_core.take_fixes.constraints import sequence_from_data
 
     clashes = [flag for flag, on in (("--variants", args.variants != 1), ("--best", args.best is not None),
                                      ("--keys", args.keys is not None), ("--path", args.path is not None),
@@ -100,8 +100,8 @@ def _sequence_lines(args) -> list[PromptLine]:
 
 
 def _constraints(args):
-    """--keys, --path and --loop as one mld_core.constraints.Constraints (empty when none is given)."""
-    from mld_core import constraints as C
+    """--keys, --path and --loop as one mld_core.take_fixes.constraints.Constraints (empty when none is given)."""
+    from mld_core.take_fixes import constraints as C
 
     items = []
     if args.keys is not None:

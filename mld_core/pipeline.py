@@ -4,6 +4,10 @@
     out = pipe(["a person waves the right hand"], seconds=4, seed=0)
     out.joints  # (N, T, 22, 3) metres, Y up, facing +Z at frame 0
 
+A call is six stages (``MLDPipeline.__call__``): the inputs checked; prompt -> condition (mld_core.condition); z_T;
+the denoising loop (mld_core.sampling: Final or Draft); decode and take fixes in their order (mld_core.decode,
+mld_core.take_fixes); the output, ranked when asked.
+
 Paper symbols: z_T ~ N(0, I) the initial latent, eps_theta(z_t, t, c) the denoiser, s the guidance scale,
 eps = eps(z_t, t, null) + s * (eps(z_t, t, c) - eps(z_t, t, null)), D the VAE decoder, x = D(z_0 / scale + mean).
 """
@@ -12,28 +16,32 @@ from __future__ import annotations
 
 import time
 import warnings
-from collections import OrderedDict
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
 
-from mld_core import content_anchor, inputs, side_contrast
-from mld_core.coverage import INDEX_NAME, load_for_model, normalise, unavailable
-from mld_core.inputs import InputError
+from mld_core import inputs
 from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, CheckpointError, ModelConfig, load_config,
                                  load_weights)
-from mld_core.models.denoiser import LatentDenoiser
-from mld_core.constraints import Constraints, bone_stretch, brief, planted_feet, planted_foot_speed, root_speed
+from mld_core.condition import content_anchor
+from mld_core.condition import text as text_condition
+from mld_core.condition.coverage import INDEX_NAME, load_for_model, unavailable
+from mld_core.decode import LatentDecoder
 from mld_core.eval.quality import REAL_JERK_P95, seam_jerk
-from mld_core.motion.features import FOOT_CONTACT, features_to_joints, mirror_text
-from mld_core.motion.repair import RepairConfig, lock_feet, repair_features
+from mld_core.inputs import InputError
+from mld_core.models.denoiser import LatentDenoiser
 from mld_core.models.transformer import native_bf16, packing_available
 from mld_core.models.vae import MotionVAE
+from mld_core.motion.features import features_to_joints
+from mld_core.sampling import Conditions, DraftSampler, FinalSampler, initial_latents
 from mld_core.schedulers import DDIMScheduler, LCMScheduler
-from mld_core.stepping import SteppingConfig, keep_cost, slide_cost, sliding_share, valid_frames
+from mld_core.take_fixes.constraints import Constraints, brief
+from mld_core.take_fixes.order import Takes, fixes_for
+from mld_core.take_fixes.repair import lock_feet, repair_rows
 
 
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16}
@@ -100,8 +108,8 @@ def _check_constraints(constraints, frames: list[int]) -> None:
     if constraints is None:
         return
     if not isinstance(constraints, Constraints):
-        raise InputError(f"constraints must be a mld_core.constraints.Constraints, e.g. Constraints([Loop()]), got "
-                         f"{type(constraints).__name__}")
+        raise InputError("constraints must be a mld_core.take_fixes.constraints.Constraints, e.g. "
+                         f"Constraints([Loop()]), got {type(constraints).__name__}")
     if constraints and len(set(frames)) > 1:
         raise InputError("constraints need every motion of a call to have the same length")
     if constraints:
@@ -115,6 +123,25 @@ def _as_list(value, n: int, name: str) -> list:
     if len(value) != n:
         raise ValueError(f"{name} has {len(value)} entries for {n} prompts")
     return value
+
+
+@dataclass
+class _Call:
+    """One call's inputs, checked: one row per (prompt, variant)."""
+
+    cond_kind: str  # "text", "action" or "none" (unconditional)
+    draft: bool
+    prompts: list  # per row
+    actions: list | None  # per row
+    seconds: list  # per row
+    seeds: list  # per row
+    lengths: torch.Tensor  # (B,) frames
+    steps: int
+    guidance: float
+    teacher_steps: int  # a Draft's last steps, made by its teacher
+    num_variants: int
+    draw: int
+    side_redraws: int  # 0 for a model not conditioned on text
 
 
 class MLDPipeline:
@@ -166,13 +193,14 @@ class MLDPipeline:
             d = config.draft
             self.draft_scheduler = LCMScheduler(config.scheduler, d.original_steps, d.timestep_scaling, d.sigma_data,
                                                 d.fresh_noise)
-        self._text_cache: OrderedDict = OrderedDict()  # prompt -> its TextEmbedding (one row, its own tokens)
-        self._draft_text_cache: OrderedDict = OrderedDict()  # the same for the Draft's text encoder
-        self.coverage_index = None  # mld_core.coverage.CoverageIndex, from the model folder's coverage_index.npz
-        self.content_anchor = None  # mld_core.content_anchor.ContentAnchor, from content_anchor.safetensors
+        self._text_cache = text_condition.TextCache()  # prompt -> its TextEmbedding (one row, its own tokens)
+        self._draft_text_cache = text_condition.TextCache()  # the same for the Draft's text encoder
+        self.coverage_index = None  # mld_core.condition.coverage.CoverageIndex, from coverage_index.npz
+        self.content_anchor = None  # mld_core.condition.content_anchor.ContentAnchor, from content_anchor.safetensors
         self._quality = None  # mld_core.eval.quality.QualityScorer, loaded on first use
         mean, std = config.mean_std
         self.mean, self.std = mean, std
+        self.decoder = LatentDecoder(config, self.vae, self.draft_vae, self.device, mean, std)  # the decode stage
 
     # -- loading ----------------------------------------------------------------------------------------------
     @classmethod
@@ -254,195 +282,23 @@ class MLDPipeline:
             raise ValueError(f"seconds must be between {self.min_seconds:g} and {self.max_seconds:g}, got {seconds}")
         return int(round(seconds * self.config.fps))
 
-    # -- normalisation ------------------------------------------------------------------------------------------
+    # -- decoding (mld_core.decode) -----------------------------------------------------------------------------
     def normalize(self, features: np.ndarray) -> np.ndarray:
-        return (features - self.mean) / self.std
+        return self.decoder.normalize(features)
 
     def denormalize(self, features: np.ndarray) -> np.ndarray:
-        return features * self.std + self.mean
+        return self.decoder.denormalize(features)
 
-    @torch.inference_mode()
     def features_to_latents(self, features: Sequence[np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Denormalised feature clips [(T_i, F)] -> their VAE means in diffusion space (B, n, d) and lengths (B,):
-        the inverse of ``latents_to_features`` (a reconstruction is one after the other)."""
-        lengths = torch.tensor([len(f) for f in features])
-        x = np.zeros((len(features), int(lengths.max()), self.config.vae.feature_dim), np.float32)  # (B, T, F)
-        for i, f in enumerate(features):
-            x[i, : len(f)] = self.normalize(f)
-        mu, _ = self.vae.encode(torch.from_numpy(x).to(self.device), lengths.to(self.device))  # (B, n, d)
-        return (mu.float() - self.config.latent_mean) * self.config.latent_scale, lengths
+        """Denormalised feature clips [(T_i, F)] -> their VAE means in diffusion space (B, n, d) and lengths (B,)."""
+        return self.decoder.latents(features)
 
-    @torch.no_grad()
     def latents_to_features(self, z: torch.Tensor, lengths: torch.Tensor, draft: bool = False) -> np.ndarray:
         """Diffusion-space latents (B, n, d) -> denormalised features (B, T, F), zero beyond each length; ``draft``
         decodes with the Draft's decoder (its precision)."""
-        vae = self.draft_vae if draft else self.vae
-        mu = z / self.config.latent_scale + self.config.latent_mean
-        x = vae.decode(mu, lengths).float().cpu().numpy()
-        feats = self.denormalize(x)
-        for i, n in enumerate(lengths.tolist()):
-            feats[i, n:] = 0.0
-        return feats.astype(np.float32)
+        return self.decoder.features(z, lengths, draft)
 
-    def _decode_with_grad(self, latent: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
-        """Normalised features (B, max length, F) of diffusion-space latents (B, n, d), differentiable (fp32)."""
-        x = self.vae.decode(latent / self.config.latent_scale + self.config.latent_mean, lengths).float()
-        return x[:, : int(lengths.max())]
-
-    def step_feet(self, z: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
-        """Sampled latents z_0 (B, n, d) refined so that the takes step instead of sliding (config ``stepping``;
-        mld_core.stepping): Adam steps through the decoder on the feet's ground slide, keeping each take's root
-        velocity, turning and stride. Takes that hardly slide are returned as sampled; each row is refined on its
-        own (a batch equals single runs)."""
-        cfg = self.config.stepping
-        with torch.inference_mode(False), torch.enable_grad():
-            mean, std = (torch.tensor(a, dtype=torch.float32, device=self.device) for a in (self.mean, self.std))
-            z0 = z.detach().clone()
-
-            def joints_of(latent, n):  # (b, n, d) -> differentiable joints (b, T, 22, 3)
-                return features_to_joints(self._decode_with_grad(latent, n) * std + mean)
-
-            sample = joints_of(z0, lengths).detach()
-            valid = valid_frames(lengths, sample.shape[1])
-            rows = torch.nonzero(sliding_share(sample, valid, cfg) >= cfg.min_slide_share).flatten()
-            if not len(rows):
-                return z
-            n = lengths[rows].clone()
-            sample, valid = sample[rows][:, : int(n.max())], valid[rows][:, : int(n.max())]
-            start = z0[rows]
-            latent = start.clone().requires_grad_(True)
-            best, best_loss = start.clone(), torch.full((len(rows),), float("inf"), device=z.device)
-            opt = torch.optim.Adam([latent], lr=cfg.lr)
-            for k in range(cfg.steps + 1):  # the last pass only scores the last step
-                with torch.set_grad_enabled(k < cfg.steps):
-                    joints = joints_of(latent, n)
-                    loss = (slide_cost(joints, valid, cfg) + keep_cost(joints, sample, valid, cfg)
-                            + cfg.prior_weight * ((latent - start) ** 2).mean(dim=(1, 2)))  # (b,)
-                better = loss.detach() < best_loss  # each row keeps its best latent: never worse than sampled
-                best[better], best_loss[better] = latent.detach()[better], loss.detach()[better]
-                if k < cfg.steps:
-                    opt.zero_grad()
-                    # rows independent: each row's gradient is its own loss's; only the latent's (the decoder's
-                    # weights need none: that would cost about 30% more per step)
-                    loss.sum().backward(inputs=[latent])
-                    opt.step()
-            out = z0.clone()
-            out[rows] = best
-        return out
-
-    def keep_less_skating(self, sampled: torch.Tensor, stepped: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
-        """Per free take, its stepped latent (B, n, d) unless the take, decoded and repaired, skates more than its
-        sampled latent decoded and repaired; then the sampled one (config ``stepping.keep_if_less_skating``).
-        Stepping lowers the slide of the unrepaired feet; some samples' feet the repairs plant better unstepped."""
-        from mld_core.eval.quality import foot_skating_ratio
-
-        rows = torch.nonzero((stepped != sampled).flatten(1).any(1)).flatten()
-        if not len(rows):
-            return stepped
-        n = lengths[rows].tolist()
-
-        def skating(z: torch.Tensor) -> np.ndarray:  # (b,) the repaired takes' foot skating ratios
-            with torch.inference_mode():
-                features = self.latents_to_features(z, lengths[rows])
-            joints = self.joints_from_features(self.repair_rows(features, n), n)
-            return np.array([foot_skating_ratio(j[:k], self.config.fps) for j, k in zip(joints, n)])
-
-        worse = torch.as_tensor(skating(stepped[rows]) > skating(sampled[rows]))
-        out = stepped.clone()
-        out[rows[worse]] = sampled[rows[worse]]
-        return out
-
-    def meet_stepped_or_not(self, sampled: torch.Tensor, stepped: torch.Tensor, lengths: torch.Tensor,
-                            constraints) -> np.ndarray:
-        """Features (B, T, F) of constrained takes: the constraints met from each stepped latent (B, n, d) with the
-        feet's slide in the cost, unless met from its sampled latent without it they meet as many constraints and
-        skate less; then those (config ``stepping.keep_if_less_skating``). Both are met in one batch of 2B rows
-        (rows are independent: a batch equals single runs); every take is met twice, even one whose latent stepping
-        left as sampled."""
-        B = len(sampled)
-        with_slide = torch.arange(2 * B) < B
-        both = self.meet_constraints(torch.cat([stepped, sampled]), torch.cat([lengths, lengths]), constraints,
-                                     self.config.stepping, slide_rows=with_slide)  # (2B, T, F)
-        return self.keep_less_skating_met(both[:B], both[B:], lengths, constraints)
-
-    def keep_less_skating_met(self, features: np.ndarray, unstepped: np.ndarray, lengths: torch.Tensor,
-                              constraints) -> np.ndarray:
-        """Per constrained take, ``features`` (B, T, F: met from its stepped latent) unless ``unstepped`` (met from
-        its sampled latent without the slide cost) meets as many constraints and skates less; then that."""
-        n = int(lengths[0])
-        out = features.copy()
-        for i in range(len(features)):
-            (met_s, skate_s), (met_u, skate_u) = (self._met_and_skating(f[:n], constraints)
-                                                  for f in (features[i], unstepped[i]))
-            if met_u >= met_s and skate_u < skate_s:
-                out[i] = unstepped[i]
-        return out
-
-    def _met_and_skating(self, features: np.ndarray, constraints) -> tuple[int, float]:
-        """A take's (number of constraints met, foot skating ratio); features (T, F)."""
-        from mld_core.eval.quality import foot_skating_ratio
-
-        joints = self.joints_from_features(features[None], [len(features)])[0]  # (T, 22, 3)
-        met = sum(bool(ok) for _, _, ok in constraints.residuals(joints))
-        return met, foot_skating_ratio(joints, self.config.fps)
-
-    def meet_constraints(self, z: torch.Tensor, lengths: torch.Tensor, constraints,
-                         stepping: SteppingConfig | None = None, slide_rows: torch.Tensor | None = None) -> np.ndarray:
-        """Denormalised features (B, T, F) of the sampled latents z (B, n, d) refined to meet ``constraints``: first
-        Adam steps on the latent through the decoder (the motion stays one the model makes; with ``stepping``, the
-        feet's ground slide costs too, so that a stepped take keeps stepping: in the rows ``slide_rows`` (B,) bool
-        marks, default all), then on the decoded features themselves with a smoothness term (what a latent of this
-        size cannot reach exactly). All rows must have one length."""
-        if len(set(lengths.tolist())) != 1:
-            raise InputError("constraints need every motion of a call to have the same length")
-        constraints.check_frames(int(lengths[0]))
-        n = int(lengths[0])
-        with torch.inference_mode(False), torch.enable_grad():
-            mean, std = (torch.tensor(a, dtype=torch.float32, device=self.device) for a in (self.mean, self.std))
-            lengths = lengths.clone()
-            z0 = z.detach().clone()
-
-            def decode(latent):  # (B, n, d) -> normalised features (B, T, F)
-                return self._decode_with_grad(latent, lengths)
-
-            slide_weight = constraints.latent_slide_weight()
-            if stepping is not None:  # (B,) the slide's weight per row
-                on = torch.ones(len(z0), dtype=torch.bool) if slide_rows is None else torch.as_tensor(slide_rows)
-                row_slide = slide_weight * on.to(device=z0.device, dtype=torch.float32)
-            z_opt = z0.clone().requires_grad_(True)
-            opt = torch.optim.Adam([z_opt], lr=constraints.lr)
-            for _ in range(constraints.steps):  # 5a. the latent
-                opt.zero_grad()
-                joints = features_to_joints(decode(z_opt) * std + mean)  # (B, T, 22, 3), differentiable
-                loss = constraints.cost(joints) + constraints.prior_weight * ((z_opt - z0) ** 2).mean()
-                if stepping is not None:
-                    valid = valid_frames(lengths, joints.shape[1])
-                    loss = loss + (row_slide * slide_cost(joints, valid, stepping)).mean()
-                # x B: every term is a mean over the takes, so each take's gradient is its own cost's, whatever the
-                # batch (a batch equals single runs); the latent's gradient only, not the decoder's weights'
-                (loss * len(z0)).backward(inputs=[z_opt])
-                opt.step()
-            x0 = decode(z_opt).detach()
-            contacts = planted_feet(x0 * std + mean, constraints.planted_toe_height_m)  # (B, T, 4) feet held still
-            x = x0.clone().requires_grad_(True)
-            opt = torch.optim.Adam([x], lr=constraints.feature_lr)
-            change_only = constraints.change_only_rows(root_speed(x0 * std + mean))  # (B,) True: the change only
-            origin = x0 * torch.as_tensor(change_only, dtype=x0.dtype, device=x0.device)[:, None, None]  # x0 or 0
-            for _ in range(constraints.feature_steps):  # 5b. the features, kept smooth and near the decoded ones
-                opt.zero_grad()
-                moved = x - origin  # the change, or the features themselves
-                accel = moved[:, 2:] - 2 * moved[:, 1:-1] + moved[:, :-2]
-                joints = features_to_joints(x * std + mean)
-                loss = (constraints.cost(joints) + constraints.smooth_weight * (accel ** 2).mean()
-                        + constraints.prior_weight * ((x - x0) ** 2).mean()
-                        + constraints.planted_weight * planted_foot_speed(joints, contacts)
-                        + constraints.bone_weight * bone_stretch(joints))
-                (loss * len(x0)).backward()  # each take's gradient its own cost's (above)
-                opt.step()
-            features = (x.detach() * std + mean).cpu().numpy()
-        out = np.zeros((len(features), int(lengths.max()), features.shape[-1]), np.float32)
-        out[:, :n] = features
-        return out
+    joints_from_features = staticmethod(LatentDecoder.joints)
 
     # -- conditions ---------------------------------------------------------------------------------------------
     def _condition(self, prompts: list, actions: list | None, kind: str, denoiser: LatentDenoiser,
@@ -460,61 +316,15 @@ class MLDPipeline:
             cond = denoiser.null_tokens(B)
         return cond, denoiser.null_tokens(B)
 
-    TEXT_CACHE_SIZE = 256
-
     def text_embeddings(self, prompts: list, draft: bool = False):
-        """The text encoder's embeddings of ``prompts`` (a TextEmbedding, one row per prompt); ``draft``: the Draft's
-        encoder's. Each prompt is encoded once per encoder and kept (the last TEXT_CACHE_SIZE): re-generating a
-        prompt with other seconds or seeds, as the live preview does, skips the text encoder."""
-        from mld_core.models.text_encoder import TextEmbedding
-
+        """The text encoder's embeddings of ``prompts`` (a TextEmbedding, one row per prompt), their sentence vectors
+        moved by the model's conditioning tricks (mld_core.condition.text); ``draft``: the Draft's encoder's. Each
+        prompt is encoded once per encoder and kept (the last TextCache.SIZE): re-generating a prompt with other
+        seconds or seeds, as the live preview does, skips the text encoder."""
         encoder = self.draft_text_encoder if draft else self.text_encoder
         cache = self._draft_text_cache if draft and encoder is not self.text_encoder else self._text_cache
-        rows = {p: cache[p] for p in prompts if p in cache}
-        new = [p for p in dict.fromkeys(prompts) if p not in rows]
-        if new:
-            emb = self._side_contrasted(new, self._anchored(new, encoder(new), encoder), encoder)
-            for i, p in enumerate(new):
-                n = int(emb.mask[i].sum())
-                rows[p] = TextEmbedding(emb.pooled[i:i + 1], emb.tokens[i:i + 1, :n], emb.mask[i:i + 1, :n])
-        for p in dict.fromkeys(prompts):
-            cache[p] = rows[p]
-            cache.move_to_end(p)
-        while len(cache) > self.TEXT_CACHE_SIZE:
-            cache.popitem(last=False)
-        return TextEmbedding.cat([rows[p] for p in prompts])
-
-    def _anchored(self, prompts: list, emb, encoder):
-        """``emb`` (``encoder``'s embeddings of ``prompts``) with its pooled vectors moved by the content anchor
-        (mld_core.content_anchor), when the model has one and config ``content_anchor.weight`` is above 0. The Draft's
-        text encoder, distilled from the Final's, shares its vector space and so its anchor. Runs on the CPU."""
-        settings = self.config.content_anchor
-        if self.content_anchor is None or settings.weight == 0 or self.content_anchor.dim != emb.pooled.shape[-1]:
-            return emb
-        plain = encoder([normalise(p) or p for p in prompts]).pooled.float().cpu()
-        plain = torch.nn.functional.normalize(plain, dim=-1)  # (B, D) the prompts without side and style words
-        scores = None
-        if settings.full_below is not None:  # from_pretrained made sure the folder has a coverage index
-            scores = torch.from_numpy(self.coverage_index.nearest_scores(plain.numpy()))
-        pooled = self.content_anchor.anchored(emb.pooled.cpu(), plain, settings.strengths(scores))
-        return type(emb)(pooled.to(emb.pooled.device), emb.tokens, emb.mask)
-
-    def _side_contrasted(self, prompts: list, emb, encoder):
-        """``emb`` (``encoder``'s anchored embeddings of ``prompts``) with the pooled vector of each prompt that names
-        a side pushed away from its mirrored wording's (mld_core.side_contrast), when config ``side_contrast`` is
-        above 0."""
-        weight = self.config.side_contrast
-        if not weight:
-            return emb
-        mirrored = [mirror_text(p) for p in prompts]
-        rows = [i for i, (p, m) in enumerate(zip(prompts, mirrored)) if p != m]
-        if not rows:
-            return emb
-        others = [mirrored[i] for i in rows]
-        mirrored_pooled = self._anchored(others, encoder(others), encoder).pooled  # (R, D)
-        pooled = emb.pooled.clone()
-        pooled[rows] = side_contrast.contrasted(emb.pooled[rows], mirrored_pooled, weight)
-        return type(emb)(pooled, emb.tokens, emb.mask)
+        return cache.embeddings(prompts, lambda new: text_condition.encode(new, encoder, self.config,
+                                                                           self.content_anchor, self.coverage_index))
 
     def clear_text_cache(self) -> None:
         """Forget every cached prompt embedding (the next call of a prompt runs its text encoder again)."""
@@ -531,8 +341,9 @@ class MLDPipeline:
 
     # -- prompt coverage and take quality ------------------------------------------------------------------------
     def coverage(self, prompts: str | Sequence[str]) -> list:
-        """Per prompt a ``mld_core.coverage.Coverage``: score, verdict known / near / unknown, the 3 nearest training
-        captions and the model's known contents (verdict "unavailable" for a folder without a coverage index)."""
+        """Per prompt a ``mld_core.condition.coverage.Coverage``: score, verdict known / near / unknown, the 3 nearest
+        training captions and the model's known contents (verdict "unavailable" for a folder without a coverage
+        index)."""
         prompts = _prompt_list(prompts)
         index = self.coverage_index
         if index is None or self.text_encoder is None:
@@ -563,30 +374,66 @@ class MLDPipeline:
                  rank: bool = False, constraints=None, repair: bool = True, draft: bool = False,
                  step: bool | None = None, draw: int = 0, side_redraws: int | None = None) -> MLDOutput:
         """Generate ``num_variants`` motions per prompt; row i*num_variants + v uses seed ``seed + v``, or
-        ``seed[i] + v`` when ``seed`` is a sequence (one per prompt). Any row equals the single run with its seed. (A
-        Draft in bf16: to within bf16 rounding, up to about 2 cm.) ``unconditional`` samples with the null
-        condition (the prompts then only label the rows). ``rank`` scores every row (``out.badges``) and orders
-        each prompt's variants best first (mld_core.eval.quality.best_first). ``constraints`` (a
-        ``mld_core.constraints.Constraints``: poses to hit, a root path, a loop) refines each sampled latent to
-        meet them; ``out.residuals`` says how well each row did. ``repair`` applies the model's repairs (config
-        ``repair``: one skeleton, planted feet; mld_core.motion.repair) to free takes. ``step`` (default: as
-        ``repair``) refines each Final take's sampled latent until its feet step (config ``stepping``); the
-        constraints are then met with the feet's slide in their cost. ``draft`` samples with
-        the model's Draft denoiser (config ``draft``: a few consistency steps, the last of them guided steps of
-        the model's own denoiser, and its own text encoder when it has one; about 10x faster). ``draw`` k starts
-        each row from the (k+1)-th z_T of its seed. ``side_redraws`` (default: config ``side_redraws``): a free take
-        whose prompt names a side (a turn, a drift, a wave, a raised hand: mld_core.eval.named_side) that it did
-        not use is drawn again, at most this often (``out.draws`` says which draw each row is)."""
+        ``seed[i] + v`` when ``seed`` is a sequence (one per prompt). Any row equals the single run with its seed (a
+        Draft in bf16: to within bf16 rounding, up to about 2 cm).
+
+        - ``draft``: the model's Draft (config ``draft``: a few consistency steps, about 10x faster).
+        - ``unconditional``: the null condition (the prompts then only label the rows).
+        - ``constraints``: a ``mld_core.take_fixes.constraints.Constraints`` (poses to hit, a root path, a loop) each
+          take is refined to meet; ``out.residuals`` says how well each row did.
+        - ``step`` (default: as ``repair``): a Final take's feet made to step (config ``stepping``).
+        - ``repair``: a free take's repairs (config ``repair``: one skeleton, planted feet).
+        - ``side_redraws`` (default: config ``side_redraws``): a free take that misses the side its prompt names is
+          drawn again, at most this often; ``draw`` k starts each row from the (k+1)-th z_T of its seed
+          (``out.draws`` says which draw each row is).
+        - ``rank``: every row scored (``out.badges``), each prompt's variants best first."""
+        t_start, timings = time.perf_counter(), {}
+        # 1. Inputs, checked before any work: one row per (prompt, variant), each with its own seed.
+        call = self._call_rows(prompts, seconds, actions, num_inference_steps, guidance_scale, seed, num_variants,
+                               unconditional, constraints, draft, draw, side_redraws)
+        # 2. Condition c and the null condition for classifier-free guidance (mld_core.condition.text: each prompt
+        #    encoded once and kept, its sentence vector anchored and its named side made louder).
+        t0 = time.perf_counter()
+        conditions = self._conditions(call)
+        timings["condition_s"] = time.perf_counter() - t0
+        # 3. z_T ~ N(0, I), drawn per row from its own seeded generator, so that a batch equals single runs.
+        z, generators = initial_latents(call.seeds, call.draw, self.config.vae.latent_tokens,
+                                        self.config.vae.latent_dim, self.device)
+        # 4. Denoising, one step at a time (mld_core.sampling): Final's DDIM steps or the Draft's consistency steps.
+        t0 = time.perf_counter()
+        sampler = self._sampler(call, conditions, generators)
+        total = len(sampler.timesteps)
+        for k, t in enumerate(sampler.timesteps):
+            z = sampler.step(k, t, z)
+            if callback is not None and callback(k + 1, total) is False:
+                raise Cancelled(f"cancelled at step {k + 1} of {total}")
+        timings["diffusion_s"] = time.perf_counter() - t0
+        # 5. Decode and fix the takes in their order (mld_core.take_fixes.order): stepping, constraints (or the plain
+        #    decode x = D(z_0)), repair, side redraw; each where it applies.
+        takes = Takes(z, z, call.lengths, call.prompts, [call.draw] * len(call.seeds), draft)
+        redo = partial(self._redraw, call, dict(callback=callback, repair=repair, draft=draft, step=step))
+        for fix in fixes_for(self.config, draft=draft, step=repair if step is None else step, repair=repair,
+                             constraints=constraints, side_redraws=call.side_redraws, redo=redo):
+            t0 = time.perf_counter()
+            takes = fix.apply(takes, self.decoder)
+            timings.update(dict.fromkeys(fix.timings, time.perf_counter() - t0))
+        # 6. Output: joints; with constraints, how well each row met them; with rank, badges and variants best first.
+        out = self._output(call, takes, constraints, timings)
+        if rank:
+            out = self._ranked(out, call, timings)
+        timings["total_s"] = time.perf_counter() - t_start
+        return out
+
+    def _call_rows(self, prompts, seconds, actions, num_inference_steps, guidance_scale, seed, num_variants,
+                   unconditional, constraints, draft, draw, side_redraws) -> _Call:
+        """Stage 1: a call's arguments checked and spread over its rows (errors before any work)."""
         if self.denoiser is None:
             raise CheckpointError("this model folder has only a VAE; sample with sample_prior() or train a denoiser")
         if draft and self.draft_denoiser is None:
             raise CheckpointError(f"Draft mode is unavailable: {self.draft_problem}" if self.draft_problem else
                                   f"the model {self.model_id} has no Draft denoiser (draft.safetensors); make one with "
                                   "`python -m mld_core train draft`")
-        timings = {}
-        t_start = time.perf_counter()
         cond_kind = "none" if unconditional else self.denoiser.config.cond
-        # 1. Inputs: one row per (prompt, variant); each row has its own seed and generator.
         if prompts is None or not isinstance(prompts, (str, Sequence)):
             raise InputError(f"prompts must be a string or a list of strings, got {type(prompts).__name__}")
         prompts = [prompts] if isinstance(prompts, str) else list(prompts)
@@ -605,7 +452,8 @@ class MLDPipeline:
         frames = [self.frames_for(float(s)) for s in secs]
         default_steps = self.config.draft.num_inference_steps if draft else self.config.num_inference_steps
         steps = default_steps if num_inference_steps is None else num_inference_steps
-        steps = inputs.int_in_range(steps, "num_inference_steps", 1, self.config.draft.original_steps if draft else 1000)
+        most = self.config.draft.original_steps if draft else 1000
+        steps = inputs.int_in_range(steps, "num_inference_steps", 1, most)
         s = inputs.finite_number(self.default_guidance(draft) if guidance_scale is None else guidance_scale,
                                  "guidance_scale")
         if draft and cond_kind != "none":  # the Draft takes the scale as an input: only the scales it learnt
@@ -613,147 +461,67 @@ class MLDPipeline:
             inputs.check_draft(s, inputs.ModelLimits(draft_guidance=(d.guidance_min, d.guidance_max)))
         num_variants = inputs.int_in_range(num_variants, "num_variants", 1, 1024)
         rows = [(i, v) for i in range(n_prompts) for v in range(num_variants)]
-        row_prompts = [prompts[i] for i, _ in rows]
-        row_actions = [actions[i] for i, _ in rows] if actions is not None else None
         base = [inputs.check_seed(x, num_variants, "seed") for x in _as_list(seed, n_prompts, "seed")]
         draw = inputs.int_in_range(draw, "draw", 0, 1000)
         redraws = self.config.side_redraws if side_redraws is None else \
             inputs.int_in_range(side_redraws, "side_redraws", 0, inputs.MAX_SIDE_REDRAWS)
-        seeds = [base[i] + v for i, v in rows]
-        lengths = torch.tensor([frames[i] for i, _ in rows], device=self.device)
-        B = len(rows)
         _check_constraints(constraints, frames)
+        return _Call(cond_kind, draft, prompts=[prompts[i] for i, _ in rows],
+                     actions=[actions[i] for i, _ in rows] if actions is not None else None,
+                     seconds=[secs[i] for i, _ in rows], seeds=[base[i] + v for i, v in rows],
+                     lengths=torch.tensor([frames[i] for i, _ in rows], device=self.device), steps=steps, guidance=s,
+                     teacher_steps=min(self.config.draft.teacher_steps, steps - 1) if draft else 0,
+                     num_variants=num_variants, draw=draw, side_redraws=redraws if cond_kind == "text" else 0)
 
-        # 2. Condition c and the null condition for classifier-free guidance.
-        t0 = time.perf_counter()
-        denoiser = self.draft_denoiser if draft else self.denoiser
-        cond, null = self._condition(row_prompts, row_actions, cond_kind, denoiser, draft)
-        teacher_steps = min(self.config.draft.teacher_steps, steps - 1) if draft else 0
-        if teacher_steps:  # the teacher's own condition tokens for its steps
-            t_cond, t_null = self._condition(row_prompts, row_actions, cond_kind, self.draft_teacher, draft)
-        timings["condition_s"] = time.perf_counter() - t0
+    def _conditions(self, call: _Call) -> Conditions:
+        """Stage 2: the sampling denoiser's condition and null tokens, and a Draft's teacher's own."""
+        denoiser = self.draft_denoiser if call.draft else self.denoiser
+        cond, null = self._condition(call.prompts, call.actions, call.cond_kind, denoiser, call.draft)
+        if not call.teacher_steps:
+            return Conditions(cond, null)
+        return Conditions(cond, null, *self._condition(call.prompts, call.actions, call.cond_kind, self.draft_teacher,
+                                                       call.draft))
 
-        # 3. z_T ~ N(0, I), drawn per row from its own generator (seeded per row) so a batch equals single runs;
-        #    draw k skips the generator's first k draws.
-        n, d = self.config.vae.latent_tokens, self.config.vae.latent_dim
-        generators = [torch.Generator().manual_seed(sd) for sd in seeds]
-        for g in generators:
-            for _ in range(draw):
-                torch.randn(n, d, generator=g)
-        z = torch.stack([torch.randn(n, d, generator=g) for g in generators]).to(self.device)  # (B, n, d)
+    def _sampler(self, call: _Call, conditions: Conditions, generators: list) -> FinalSampler | DraftSampler:
+        """Stage 4's sampler, its scheduler set to the call's steps (a Draft at its default number of steps on its
+        own timesteps, config draft.timesteps); s = 1 or no condition: the condition alone, unguided."""
+        guided = call.cond_kind != "none"
+        if not call.draft:
+            self.scheduler.set_timesteps(call.steps)
+            scale = call.guidance if call.guidance != 1.0 and guided else None
+            return FinalSampler(self.denoiser, self.scheduler, conditions, call.lengths, scale)
+        own = self.config.draft
+        self.draft_scheduler.set_timesteps(call.steps, own.timesteps if call.steps == own.num_inference_steps else None)
+        t_s = own.teacher_guidance if own.teacher_guidance is not None else call.guidance
+        return DraftSampler(self.draft_denoiser, self.draft_scheduler, conditions, call.lengths,
+                            call.guidance if guided else 1.0, generators, self.draft_teacher,
+                            t_s if t_s != 1.0 and guided else None, call.teacher_steps)
 
-        # 4. Denoising. Final: DDIM, eps = eps_null + s * (eps_c - eps_null). Draft: consistency steps of the
-        #    distilled denoiser, which takes s as an input (one pass per step), re-noised between steps; its last
-        #    ``teacher_steps`` are guided DDIM steps of the denoiser it was distilled from, which finish the sample.
-        t0 = time.perf_counter()
-        if draft:  # the Draft's own timesteps (config draft.timesteps) at its default number of steps
-            scheduler, own = self.draft_scheduler, self.config.draft
-            scheduler.set_timesteps(steps, own.timesteps if steps == own.num_inference_steps else None)
-        else:
-            scheduler = self.scheduler
-            scheduler.set_timesteps(steps)
-        scale = s if s != 1.0 and cond_kind != "none" else None  # None: the condition alone, no guidance
-        t_s = self.config.draft.teacher_guidance if draft and self.config.draft.teacher_guidance is not None else s
-        teacher_scale = t_s if t_s != 1.0 and cond_kind != "none" else None
-        total = len(scheduler.timesteps)
-        for k, t in enumerate(scheduler.timesteps):
-            if not draft:  # 4a. a DDIM step of the denoiser
-                eps = _guided_eps(self.denoiser, z, t, cond, null, lengths, scale)
-                z, _ = scheduler.step(eps, t, z)
-            elif k < total - teacher_steps:  # 4b. a consistency step of the Draft denoiser
-                dtype = denoiser.latent_in.weight.dtype
-                scales = torch.full((B,), s if cond_kind != "none" else 1.0, device=self.device)
-                t_batch = torch.full((B,), int(t), device=self.device)
-                eps = denoiser(z.to(dtype), t_batch, cond.to(dtype), lengths, guidance=scales).float()
-                noise = (torch.stack([torch.randn(n, d, generator=g) for g in generators]).to(self.device)
-                         if k + 1 < total and scheduler.needs_noise else None)
-                z, _ = scheduler.step(eps, t, z, noise)
-            else:  # 4c. a guided DDIM step of its teacher (at config draft.teacher_guidance, when set)
-                eps = _guided_eps(self.draft_teacher, z, t, t_cond, t_null, lengths, teacher_scale)
-                z = scheduler.ddim_step(eps, t, scheduler.next_timestep(t), z)
-            if callback is not None and callback(k + 1, total) is False:
-                raise Cancelled(f"cancelled at step {k + 1} of {total}")
-        timings["diffusion_s"] = time.perf_counter() - t0
+    def _redraw(self, call: _Call, kwargs: dict, rows: list, draw: int) -> MLDOutput:
+        """Rows ``rows`` of ``call`` made again from draw ``draw`` of their seeds, as they were first made but without
+        redraws (a side redraw's ``redo``)."""
+        return self([call.prompts[r] for r in rows], [call.seconds[r] for r in rows],
+                    seed=[call.seeds[r] for r in rows], draw=draw, side_redraws=0, num_inference_steps=call.steps,
+                    guidance_scale=call.guidance, **kwargs)
 
-        # 5. Decode x = D(z_0); with constraints, refine z_0 and then x until they are met (see meet_constraints).
-        #    A Final take's z_0 is first refined so that its feet step instead of sliding (step_feet), free or
-        #    constrained; a free one keeps the sample where that, repaired, skates less (keep_less_skating: also
-        #    with repair=False and step=True, as a sequence's first segment is made, repaired once joined), a
-        #    constrained one where the sample, met without stepping, skates less and meets as much (both met in one
-        #    batch: meet_stepped_or_not).
-        t0 = time.perf_counter()
-        stepped = ((repair if step is None else step) and not draft and self.config.stepping.steps > 0
-                   and self.config.vae.feature_dim == 263)
-        if stepped:
-            sampled, z = z, self.step_feet(z, lengths)
-            if self.config.stepping.keep_if_less_skating and not constraints:
-                z = self.keep_less_skating(sampled, z, lengths)
-            timings["stepping_s"] = time.perf_counter() - t0
-            t0 = time.perf_counter()  # decode_s below: the decoding alone (AITS), or meeting the constraints
-        if constraints and stepped and self.config.stepping.keep_if_less_skating:
-            features = self.meet_stepped_or_not(sampled, z, lengths, constraints)
-            timings["constraints_s"] = time.perf_counter() - t0
-        elif constraints:
-            features = self.meet_constraints(z, lengths, constraints, self.config.stepping if stepped else None)
-            timings["constraints_s"] = time.perf_counter() - t0
-        else:
-            features = self.latents_to_features(z, lengths, draft)
-        timings["decode_s"] = time.perf_counter() - t0
-
-        # 5b. Repairs of free takes: one skeleton, planted feet (constraints already place the root and joints).
-        if repair and not constraints:
-            t0 = time.perf_counter()
-            features = self.repair_rows(features, lengths.tolist())
-            timings["repair_s"] = time.perf_counter() - t0
-
-        # 6. Joints from the features.
-        joints = self.joints_from_features(features, lengths.tolist())
-        out = MLDOutput(features, joints, lengths.cpu().numpy(), row_prompts, seeds, self.config.fps,
-                        self.model_id, timings, draws=[draw] * B)
+    def _output(self, call: _Call, takes: Takes, constraints, timings: dict) -> MLDOutput:
+        """Stage 6: the takes as an MLDOutput (joints made here unless a fix made them)."""
+        joints = takes.joints
+        if joints is None:
+            joints = self.decoder.joints(takes.features, call.lengths.tolist())
+        out = MLDOutput(takes.features, joints, call.lengths.cpu().numpy(), call.prompts, call.seeds, self.config.fps,
+                        self.model_id, timings, draws=takes.draws)
         if constraints:
             out.residuals = [constraints.residuals(joints[i, :n]) for i, n in enumerate(out.lengths)]
-        # 6b. Side redraws: a free take that misses the side its prompt names is drawn again (redraw_off_side).
-        if redraws and cond_kind == "text" and not constraints:
-            t0 = time.perf_counter()
-            out = self.redraw_off_side(out, [secs[i] for i, _ in rows], redraws, num_inference_steps=steps,
-                                       guidance_scale=s, callback=callback, repair=repair, draft=draft, step=step)
-            timings["side_redraws_s"] = time.perf_counter() - t0
-        if rank:  # 7. Badges per row; each prompt's variants best first.
-            from mld_core.eval.quality import rank_output
-
-            t0 = time.perf_counter()
-            out = rank_output(out, self.quality_scorer(), num_variants, None if cond_kind == "text" else [])
-            timings["rank_s"] = time.perf_counter() - t0
-        timings["total_s"] = time.perf_counter() - t_start
         return out
 
-    def redraw_off_side(self, out: MLDOutput, seconds: list, redraws: int, **kwargs) -> MLDOutput:
-        """``out`` with each row whose prompt names a side that the take did not use (side badge "opposite" or
-        "neither") replaced by the first of its seed's next ``redraws`` draws that uses it, else by the first that
-        is at least not on the opposite side; ``out.draws`` records the draw kept. ``kwargs``: the first draw's
-        sampling arguments (steps, guidance, repair, ...), so that each draw is made as it was."""
-        from mld_core.eval.quality import side_badge
+    def _ranked(self, out: MLDOutput, call: _Call, timings: dict) -> MLDOutput:
+        """Badges per row; each prompt's variants best first (mld_core.eval.quality.rank_output)."""
+        from mld_core.eval.quality import rank_output
 
-        def side(o: MLDOutput, r: int) -> str | None:
-            return side_badge(o.prompts[r], o.joints[r, : int(o.lengths[r])], o.fps)
-
-        verdicts = [side(out, r) for r in range(len(out.lengths))]
-        first = out.draws[0] if out.draws else 0
-        for k in range(first + 1, first + redraws + 1):
-            rows = [r for r, v in enumerate(verdicts) if v in ("opposite", "neither")]
-            if not rows:
-                break
-            again = self([out.prompts[r] for r in rows], [seconds[r] for r in rows],
-                         seed=[out.seeds[r] for r in rows], draw=k, side_redraws=0, **kwargs)
-            for j, r in enumerate(rows):
-                v = side(again, j)
-                if v == "named" or (v == "neither" and verdicts[r] == "opposite"):
-                    n = again.features.shape[1]  # (B', T', F): T' <= this output's T
-                    out.features[r] = 0.0
-                    out.features[r, :n] = again.features[j]
-                    out.joints[r, :n] = again.joints[j]
-                    out.joints[r, n:] = again.joints[j, int(again.lengths[j]) - 1]  # (frames past the length repeat)
-                    out.draws[r], verdicts[r] = k, v
+        t0 = time.perf_counter()
+        out = rank_output(out, self.quality_scorer(), call.num_variants, None if call.cond_kind == "text" else [])
+        timings["rank_s"] = time.perf_counter() - t0
         return out
 
     def sequence(self, segments: Sequence[tuple[str, float]], *, seed: int = 0, overlap_s: float = 0.5,
@@ -766,7 +534,7 @@ class MLDPipeline:
         free take of its own. Returns one row; ``timings["segments"]`` holds each segment's first frame, and
         ``seams`` each seam's largest joint jerk on the joined take against real motion's (``quality.seam_jerk``):
         that, not the Continuation's residual before the fade, is what the seam looks like."""
-        from mld_core.constraints import Continuation
+        from mld_core.take_fixes.constraints import Continuation
 
         t_start = time.perf_counter()
         segments, overlap = self._sequence_segments(segments, overlap_s)
@@ -790,7 +558,7 @@ class MLDPipeline:
         if repair:  # planted per segment (a walk backwards keeps its travel after a long run), then feet locked
             bounds = starts[1:] + [len(features)]  # over the whole take: a foot held across a seam stays held
             per_segment = replace(self.config.repair, lock_feet=False)
-            features = np.concatenate([self.repair_rows(features[None, a:b], [b - a], per_segment)[0]
+            features = np.concatenate([repair_rows(features[None, a:b], [b - a], per_segment)[0]
                                        for a, b in zip(starts, bounds)])
             if self.config.repair.lock_feet and features.shape[-1] == 263:
                 spans = list(zip(starts, bounds))  # a shuffling segment is not held (lock_feet)
@@ -840,17 +608,6 @@ class MLDPipeline:
             raise InputError(f"overlap_s {overlap_s:g} is longer than sequence segment 1 ({checked[0][1]:g} s)")
         return checked, overlap
 
-    def repair_rows(self, features: np.ndarray, lengths: list, config: RepairConfig | None = None) -> np.ndarray:
-        """Each row's first ``lengths[i]`` frames with the repairs of ``config`` (default: the model's) applied (a
-        copy; 263-d features only)."""
-        cfg = config or self.config.repair
-        if features.shape[-1] != 263 or not (cfg.bone_lengths or cfg.plant_feet or cfg.lock_feet):
-            return features
-        out = features.copy()
-        for i, n in enumerate(lengths):
-            out[i, :n] = repair_features(features[i, :n], cfg)
-        return out
-
     @torch.inference_mode()
     def sample_prior(self, seconds: float = 4.0, num: int = 1, seed: int = 0) -> MLDOutput:
         """Unconditional generation by decoding z ~ N(0, I) from the VAE prior (no denoiser)."""
@@ -863,19 +620,6 @@ class MLDPipeline:
         features = self.latents_to_features(z.to(self.device), lengths.to(self.device))
         joints = self.joints_from_features(features, lengths.tolist())
         return MLDOutput(features, joints, lengths.numpy(), [""] * num, seeds, self.config.fps, self.model_id)
-
-    @staticmethod
-    def joints_from_features(features: np.ndarray, lengths: list) -> np.ndarray:
-        B, T = features.shape[:2]
-        joints = np.zeros((B, T, 22, 3), np.float32)
-        for i, n in enumerate(lengths):
-            joints[i, :n] = features_to_joints(features[i, :n])
-            joints[i, n:] = joints[i, n - 1]
-        if not np.isfinite(joints).all():  # never hand a take of NaN/inf joints to a writer
-            raise InputError("the model produced non-finite motion (NaN or inf): check the guidance scale and the "
-                             "model's config.json (mean/std)")
-        return joints
-
 
 def _vae_copy(vae: MotionVAE, config, device: torch.device, dtype: torch.dtype) -> MotionVAE:
     """A copy of ``vae`` for decoding whose decoder's matrix products (and so its attention) run in ``dtype``; layer
@@ -909,21 +653,6 @@ def _draft_text_encoder(model_dir: Path, config: ModelConfig, precision: str):
         return load_text_encoder({**config.text_encoder, **dtype})
     except TypeError:
         return None
-
-
-def _guided_eps(denoiser: LatentDenoiser, z: torch.Tensor, t, cond: torch.Tensor, null: torch.Tensor,
-                lengths: torch.Tensor, scale: float | None) -> torch.Tensor:
-    """The denoiser's noise prediction at z_t (B, n, d) in float32: with ``scale``, classifier-free guidance
-    eps_null + s * (eps_c - eps_null) from one pass over the 2B rows [null; cond]; without, the condition alone."""
-    dtype = denoiser.latent_in.weight.dtype
-    if scale is None:
-        t_batch = torch.full((len(z),), int(t), device=z.device)
-        return denoiser(z.to(dtype), t_batch, cond.to(dtype), lengths).float()
-    t_batch = torch.full((2 * len(z),), int(t), device=z.device)
-    eps = denoiser(torch.cat([z, z]).to(dtype), t_batch, torch.cat([null, cond]).to(dtype),
-                   torch.cat([lengths, lengths])).float()
-    eps_null, eps_cond = eps.chunk(2)  # each (B, n, d)
-    return eps_null + scale * (eps_cond - eps_null)
 
 
 def _denoiser_copy(denoiser: LatentDenoiser, config, device: torch.device, dtype: torch.dtype) -> LatentDenoiser:

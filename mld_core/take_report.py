@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Sequence
 
-from mld_core.coverage import Coverage
+from mld_core.condition.coverage import Coverage
 from mld_core.eval import named_side
 from mld_core.eval.quality import REAL_JERK_P95, Badges, format_table, side_badge
 

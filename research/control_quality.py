@@ -19,7 +19,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from mld_core.constraints import Constraints, PoseKeys  # noqa: E402
+from mld_core.take_fixes.constraints import Constraints, PoseKeys  # noqa: E402
 from mld_core.eval import metrics  # noqa: E402
 from mld_core.motion.skeleton import JOINT_NAMES  # noqa: E402
 

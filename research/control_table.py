@@ -26,7 +26,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from mld_core.constraints import Constraints, Loop, PoseKeys, RootPath  # noqa: E402
+from mld_core.take_fixes.constraints import Constraints, Loop, PoseKeys, RootPath  # noqa: E402
 from mld_core.eval import physical  # noqa: E402
 from mld_core.eval.quality import foot_skating_ratio, largest_joint_jerk  # noqa: E402
 from mld_core.motion.skeleton import JOINT_NAMES  # noqa: E402

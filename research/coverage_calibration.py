@@ -4,7 +4,7 @@
 
 tests/fixtures/coverage_known.txt holds paraphrases of contents the bundled model knows ("content | prompt"),
 tests/fixtures/coverage_absent.txt prompts of motions absent from its training data. Prints, for the thresholds
-in mld_core.coverage (and with --sweep for others), the share of each set per verdict against the targets:
+in mld_core.condition.coverage (and with --sweep for others), the share of each set per verdict against the targets:
 <= 5% of the known set ``unknown``, >= 95% of the absent set ``unknown`` or ``near``. Also checks that adding
 side or style words to every prompt changes no verdict, and times one prompt's check (what the panel runs as the
 user types).
@@ -22,7 +22,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from mld_core import coverage  # noqa: E402
+from mld_core.condition import coverage  # noqa: E402
 from mld_core.motion.features import mirror_text  # noqa: E402
 
 FIXTURES = REPO / "tests" / "fixtures"

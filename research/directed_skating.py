@@ -1,5 +1,6 @@
 """Do directed takes step? Foot skating of takes on a root path, looped takes and prompt sequences, with and without
-stepping (MLDPipeline.step_feet), on the bundled model (a measurement: prints a table, asserts nothing).
+stepping (mld_core.take_fixes.stepping.step_feet), on the bundled model (a measurement: prints a table, asserts
+nothing).
 
     .venv/bin/python research/directed_skating.py [--model DIR] [--seeds 8] [--threads 1] [--json out.json]
 
@@ -21,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mld_core.constraints import Constraints, Loop, RootPath  # noqa: E402
+from mld_core.take_fixes.constraints import Constraints, Loop, RootPath  # noqa: E402
 from mld_core.eval.quality import foot_skating_ratio  # noqa: E402
 
 PATHS = {  # name: (prompt, seconds, frames of the path's points, their (x, z) in metres)

@@ -16,7 +16,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mld_core.constraints import Constraints, Loop  # noqa: E402
+from mld_core.take_fixes.constraints import Constraints, Loop  # noqa: E402
 from mld_core.data.dataset import load_split  # noqa: E402
 from mld_core.motion.features import features_to_joints  # noqa: E402
 from mld_core.pipeline import MLDPipeline  # noqa: E402

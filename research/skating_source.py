@@ -11,11 +11,11 @@ prints the foot skating ratio (mld_core.eval.quality) and the per-take bone leng
 - ``real pose + recon root``: the other way round; the two say whether the root trajectory or the pose skates;
 - ``sample``: the diffusion model on the clip's first caption at the clip's length (seed = clip index), unrepaired;
 - ``one skeleton`` / ``planted fully`` / ``repaired, feet not locked`` / ``repaired, not stepped``:
-  mld_core.motion.repair's bone lengths alone, root re-estimation from the planted feet with no travel kept, the
+  mld_core.take_fixes.repair's bone lengths alone, root re-estimation from the planted feet with no travel kept, the
   model's configured repairs without lock_feet, and with it;
 - ``stepped`` / ``stepped, repaired (default)``: the same samples' latents refined so that their feet step
-  (MLDPipeline.step_feet, config ``stepping``), decoded as they are, then with the model's repairs: the pipeline's
-  output.
+  (take_fixes.stepping.step_feet, config ``stepping``), decoded as they are, then with the model's repairs: the
+  pipeline's output.
 
 Besides skating, bone length SD, jerk and travel it prints the share of frames with a straight knee (either knee
 bent less than 3 degrees), which the leg IK of lock_feet raises where it holds a foot out of the leg's reach.
@@ -38,7 +38,8 @@ from mld_core.data.dataset import load_split  # noqa: E402
 from mld_core.eval.quality import foot_skating_ratio, mean_jerk  # noqa: E402
 from mld_core.motion import skeleton as sk  # noqa: E402
 from mld_core.motion.features import features_to_joints  # noqa: E402
-from mld_core.motion.repair import RepairConfig, features_with_bone_lengths, plant_feet, repair_features  # noqa: E402
+from mld_core.take_fixes.repair import (RepairConfig, features_with_bone_lengths, plant_feet,  # noqa: E402
+                                        repair_features)
 from mld_core.pipeline import MLDPipeline  # noqa: E402
 from mld_core.rig.fidelity import knee_bend_deg  # noqa: E402
 

@@ -1,4 +1,4 @@
-"""Fit a model folder's content anchor (mld_core.content_anchor) on its training captions.
+"""Fit a model folder's content anchor (mld_core.condition.content_anchor) on its training captions.
 
     python scripts/build_content_anchor.py --data DIR --model mld_core/weights/default [--weight 1.0 [--full-below 0.9]]
 
@@ -18,7 +18,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from mld_core import content_anchor, inputs  # noqa: E402
+from mld_core import inputs  # noqa: E402
+from mld_core.condition import content_anchor  # noqa: E402
 from mld_core.checkpoint import DEFAULT_MODEL_DIR, CheckpointError, load_config, save_json  # noqa: E402
 
 

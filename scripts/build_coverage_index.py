@@ -4,7 +4,7 @@
 
 Reads the unique captions of the data folder's split (and each clip's content label from actions.json), encodes
 them (side and style words removed) with the model's own text encoder and writes MODEL/coverage_index.npz
-(mld_core.coverage). Training writes it too; scripts/export_model.py copies or builds it.
+(mld_core.condition.coverage). Training writes it too; scripts/export_model.py copies or builds it.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from mld_core import coverage  # noqa: E402
+from mld_core.condition import coverage  # noqa: E402
 from mld_core.checkpoint import DEFAULT_MODEL_DIR, load_config  # noqa: E402
 
 

@@ -11,8 +11,8 @@ A model folder's Draft (draft.safetensors, draft_text.safetensors) is exported w
 whose draft.safetensors is missing is refused.
 
 The run's prompt-coverage index (coverage_index.npz, written by training) is copied; a run without one gets an
-index built from ``--data``'s train captions (mld_core.coverage), else the folder ships without one and reports
-coverage as unavailable.
+index built from ``--data``'s train captions (mld_core.condition.coverage), else the folder ships without one and
+reports coverage as unavailable.
 
 Refuses to replace an existing folder unless --overwrite is given; writes into a temporary folder first.
 """
@@ -69,7 +69,7 @@ lets the pipeline say so before generating (`MLDPipeline.coverage`, docs/quality
 
 
 def write_coverage_index(run: Path, folder: Path, config, data: Path | None) -> None:
-    from mld_core import coverage
+    from mld_core.condition import coverage
 
     if (run / coverage.INDEX_NAME).is_file():
         shutil.copyfile(run / coverage.INDEX_NAME, folder / coverage.INDEX_NAME)
@@ -134,7 +134,7 @@ def check_data(data: Path | None) -> None:
     """--data, when given: a HumanML3D-format folder with train captions (the coverage index is built from them)."""
     if data is None:
         return
-    from mld_core.coverage import training_captions
+    from mld_core.condition.coverage import training_captions
 
     if not data.is_dir():
         raise InputError(f"--data {data}: no such folder")

@@ -1,5 +1,5 @@
-"""Directing a take: poses to hit, a root path, a loop (mld_core.constraints through MLDPipeline), and the command
-line's --keys / --path / --loop with their bad-input answers. Tiny seeded model: its motions are noise, but the
+"""Directing a take: poses to hit, a root path, a loop (mld_core.take_fixes.constraints through MLDPipeline), and the
+command line's --keys / --path / --loop with their bad-input answers. Tiny seeded model: its motions are noise, but the
 constraints must still be met, and the free path must not change."""
 
 from __future__ import annotations
@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from mld_core.cli import main
-from mld_core.constraints import Constraints, Loop, PoseKeys, RootPath, bone_stretch, read_keys, read_path
 from mld_core.inputs import InputError
+from mld_core.take_fixes.constraints import Constraints, Loop, PoseKeys, RootPath, bone_stretch, read_keys, read_path
+from mld_core.take_fixes.meet_constraints import meet_constraints
 from mld_core.motion import skeleton as sk
 from mld_core.motion.skeleton import JOINT_NAMES
 from mld_core.testing import tiny_model
@@ -81,7 +82,7 @@ def test_a_constrained_batch_equals_single_runs(pipe):
 def test_each_takes_planted_feet_count_on_their_own():
     import torch
 
-    from mld_core.constraints import planted_foot_speed
+    from mld_core.take_fixes.constraints import planted_foot_speed
 
     joints = torch.randn(2, 10, 22, 3, generator=torch.Generator().manual_seed(0))
     contacts = torch.zeros(2, 10, 4, dtype=torch.bool)
@@ -94,7 +95,7 @@ def test_each_takes_planted_feet_count_on_their_own():
 def test_toes_near_the_floor_are_held_as_well_as_the_planted_channels():
     import torch
 
-    from mld_core.constraints import planted_feet
+    from mld_core.take_fixes.constraints import planted_feet
     from mld_core.motion.features import FOOT_CONTACT, features_to_joints
 
     features = np.load(REPO / "tests" / "fixtures" / "humanml3d" / "new_joint_vecs_012314.npy").astype(np.float32)
@@ -198,7 +199,7 @@ def test_a_sequence_is_one_continuous_motion(pipe):
 def test_a_continuation_smooths_only_its_change_so_the_take_keeps_its_own_motion(pipe):
     import torch
 
-    from mld_core.constraints import Continuation
+    from mld_core.take_fixes.constraints import Continuation
     from mld_core.motion.features import features_to_joints
 
     lengths = torch.tensor([40])
@@ -215,7 +216,7 @@ def test_a_continuation_smooths_only_its_change_so_the_take_keeps_its_own_motion
     for change_only in (False, True):
         c = Constraints([met], steps=0, feature_steps=60, planted_weight=0.0, bone_weight=0.0,
                         smooth_change_only=change_only)
-        kept[change_only] = shake(pipe.meet_constraints(z, lengths, c)[0]) / shake(decoded)
+        kept[change_only] = shake(meet_constraints(pipe.decoder, z, lengths, c)[0]) / shake(decoded)
     assert kept[False] < 0.8  # smoothing the features themselves damps the take's own motion ...
     assert kept[True] > 0.95  # ... smoothing only the change keeps it
 
@@ -233,7 +234,7 @@ def test_only_a_loop_keeps_smoothing_the_features_themselves_by_default():
 def test_a_loop_in_place_keeps_its_own_motion_and_one_that_travels_does_not():
     import torch
 
-    from mld_core.constraints import root_speed
+    from mld_core.take_fixes.constraints import root_speed
     from mld_core.motion.features import ROOT_LIN_VEL
 
     features = torch.zeros(3, 40, 263)

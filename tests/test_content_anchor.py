@@ -1,4 +1,5 @@
-"""The content anchor (mld_core.content_anchor): fitting, moving a prompt's vector, files, and the pipeline's use."""
+"""The content anchor (mld_core.condition.content_anchor): fitting, moving a prompt's vector, files, and the
+pipeline's use."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import torch
 import torch.nn.functional as F
 from safetensors import safe_open
 
-from mld_core import content_anchor
+from mld_core.condition import content_anchor
 from mld_core.checkpoint import CheckpointError, load_config, save_json
 from mld_core.models.text_encoder import load_text_encoder
 from mld_core.testing import TINY_TEXT_ENCODER, tiny_model
@@ -93,7 +94,7 @@ def test_save_load_parity_and_a_corrupt_file(anchor, tmp_path):
 
 
 def _anchored_model(tmp_path, anchor, strength, full_below=None, index_captions=()):
-    from mld_core import coverage
+    from mld_core.condition import coverage
     from mld_core.pipeline import MLDPipeline
 
     folder = tiny_model(tmp_path / f"m{strength}-{full_below}", draft=True)

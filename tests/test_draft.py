@@ -206,7 +206,7 @@ def test_each_prompt_is_encoded_once_and_the_cache_is_bounded(pipe, monkeypatch)
     assert seen == [] and np.allclose(again.joints[1], first.joints[0], atol=1e-5)
     pipe(["sits down"], 1.5)
     assert seen == ["sits down"]
-    monkeypatch.setattr(pipe, "TEXT_CACHE_SIZE", 2)
+    monkeypatch.setattr(pipe._text_cache, "SIZE", 2)
     pipe(["jumps"], 1.5)
     assert list(pipe._text_cache) == ["sits down", "jumps"]
 

@@ -1,5 +1,5 @@
-"""Prompt coverage, take-quality badges and best-of-N ranking (mld_core.coverage, mld_core.eval.quality), and the
-generate CLI's --strict / --best."""
+"""Prompt coverage, take-quality badges and best-of-N ranking (mld_core.condition.coverage, mld_core.eval.quality), and
+the generate CLI's --strict / --best."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from mld_core import coverage
+from mld_core.condition import coverage
 from mld_core.checkpoint import DEFAULT_MODEL_DIR, CheckpointError
 from mld_core.eval import quality
 from mld_core.motion import skeleton as sk

@@ -172,19 +172,19 @@ def test_pipeline_never_returns_non_finite_joints(pipe):
 
 
 def _keys(targets, **settings):
-    from mld_core.constraints import PoseKeys
+    from mld_core.take_fixes.constraints import PoseKeys
 
     return PoseKeys(targets, **settings)
 
 
 def _path(frames, points):
-    from mld_core.constraints import RootPath
+    from mld_core.take_fixes.constraints import RootPath
 
     return RootPath(frames, np.asarray(points, np.float64))
 
 
 def _constraints(items, **settings):
-    from mld_core.constraints import Constraints
+    from mld_core.take_fixes.constraints import Constraints
 
     return Constraints(items, **settings)
 
@@ -223,7 +223,7 @@ def test_constraint_objects_check_themselves_when_made(make, words):
 
 
 def test_constraints_the_take_cannot_hold_are_refused_before_sampling(pipe, monkeypatch):
-    from mld_core.constraints import Loop
+    from mld_core.take_fixes.constraints import Loop
 
     def no_sampling(*args, **kwargs):
         raise AssertionError("sampled before the constraints were checked")
@@ -231,7 +231,7 @@ def test_constraints_the_take_cannot_hold_are_refused_before_sampling(pipe, monk
     monkeypatch.setattr(pipe, "_condition", no_sampling)
     with pytest.raises(inputs.InputError, match="reaches frame 40, but the take has 40 frames"):
         pipe("a person walks", 2.0, constraints=_constraints([_keys({40: {"head": POSE}})]))
-    with pytest.raises(inputs.InputError, match="constraints must be a mld_core.constraints.Constraints"):
+    with pytest.raises(inputs.InputError, match="constraints must be a mld_core.take_fixes.constraints.Constraints"):
         pipe("a person walks", 2.0, constraints=[Loop()])
     with pytest.raises(inputs.InputError, match="the same length"):
         pipe(["a person walks", "a person runs"], [2.0, 3.0], constraints=_constraints([Loop()]))

@@ -1,4 +1,4 @@
-"""Repairs of generated takes (mld_core.motion.repair): planted feet that do not slide, locked feet, one skeleton
+"""Repairs of generated takes (mld_core.take_fixes.repair): planted feet that do not slide, locked feet, one skeleton
 per take."""
 
 from __future__ import annotations
@@ -12,9 +12,10 @@ from mld_core.checkpoint import CheckpointError, load_config
 from mld_core.eval.quality import foot_skating_ratio
 from mld_core.motion import skeleton as sk
 from mld_core.motion.features import FOOT_CONTACT, RIC, features_to_joints, joints_to_features
-from mld_core.motion.repair import (RepairConfig, double_support_share, features_with_bone_lengths, foot_hold_shifts,
-                                    lock_feet, plant_feet, repair_features, two_bone_ik)
 from mld_core.rig.fidelity import knee_bend_deg
+from mld_core.take_fixes.repair import (RepairConfig, double_support_share, features_with_bone_lengths,
+                                        foot_hold_shifts, lock_feet, plant_feet, repair_features, repair_rows,
+                                        two_bone_ik)
 from mld_core.testing import tiny_model
 
 WALK = "dataset-2_walk-turn-left_normal_027"
@@ -109,7 +110,8 @@ def test_pipeline_repairs_free_takes_only_when_asked(tmp_path):
     on = pipe(["a walk", "a wave"], 2.5, seed=[1, 2], num_inference_steps=2)
     off = pipe(["a walk", "a wave"], 2.5, seed=[1, 2], num_inference_steps=2, repair=False)
     assert not np.allclose(on.features, off.features)
-    np.testing.assert_allclose(on.features, pipe.repair_rows(off.features, off.lengths.tolist()), atol=1e-5)
+    repaired = repair_rows(off.features, off.lengths.tolist(), pipe.config.repair)
+    np.testing.assert_allclose(on.features, repaired, atol=1e-5)
     single = pipe("a wave", 2.5, seed=2, num_inference_steps=2)
     np.testing.assert_allclose(single.features[0], on.features[1], atol=1e-5)  # batch equals single runs
     pipe.config.repair = RepairConfig(bone_lengths=False, plant_feet=False, lock_feet=False)

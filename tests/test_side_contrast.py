@@ -1,4 +1,4 @@
-"""Side contrast (mld_core.side_contrast): the vector math, its setting, and the pipeline's use."""
+"""Side contrast (mld_core.condition.side_contrast): the vector math, its setting, and the pipeline's use."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from mld_core import side_contrast
+from mld_core.condition import side_contrast
 from mld_core.checkpoint import CheckpointError, load_config, save_json
 from mld_core.testing import tiny_model
 

@@ -1,5 +1,5 @@
-"""Side redraws (MLDPipeline.redraw_off_side, config side_redraws): a free take that misses the side its prompt names
-is drawn again from its seed, and the user is told which draw they got and why."""
+"""Side redraws (mld_core.take_fixes.side_redraw, config side_redraws): a free take that misses the side its prompt
+names is drawn again from its seed, and the user is told which draw they got and why."""
 
 from __future__ import annotations
 
@@ -75,7 +75,7 @@ def test_when_no_draw_uses_the_side_a_neither_beats_an_opposite_and_otherwise_th
 
 
 def test_no_redraw_when_off_when_no_side_is_named_or_when_the_take_is_directed(pipe, monkeypatch):
-    from mld_core.constraints import Constraints, Loop
+    from mld_core.take_fixes.constraints import Constraints, Loop
 
     draws = _draws(pipe, TURN_LEFT, 2.0, 3, 1)
     calls = _side_by_draw(monkeypatch, draws, ["opposite"])

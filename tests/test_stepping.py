@@ -1,4 +1,4 @@
-"""Stepping (mld_core.stepping, MLDPipeline.step_feet): sampled latents refined so that takes step instead of
+"""Stepping (mld_core.take_fixes.stepping, step_feet): sampled latents refined so that takes step instead of
 sliding, keeping their path, facing and stride."""
 
 from __future__ import annotations
@@ -13,7 +13,10 @@ import torch
 from mld_core.checkpoint import CheckpointError, load_config
 from mld_core.eval.quality import foot_skating_ratio
 from mld_core.motion.features import features_to_joints
-from mld_core.stepping import SteppingConfig, keep_cost, slide_cost, sliding_share, stride, facing, valid_frames
+from mld_core.take_fixes.meet_constraints import meet_constraints
+from mld_core.take_fixes.repair import repair_rows
+from mld_core.take_fixes.stepping import (SteppingConfig, keep_cost, keep_less_skating, slide_cost, sliding_share,
+                                         step_feet, stride, facing, valid_frames)
 from mld_core.testing import tiny_model
 
 WALK = "dataset-2_walk-turn-left_normal_027"
@@ -107,7 +110,7 @@ def test_stepping_lowers_the_cost_and_never_raises_a_takes(tmp_path, lr, gain):
     cfg = pipe.config.stepping
     z = torch.randn(3, 1, 32, generator=torch.Generator().manual_seed(0))
     lengths = torch.tensor([60, 48, 60])
-    stepped = pipe.step_feet(z, lengths)
+    stepped = step_feet(pipe.decoder, z, lengths, pipe.config.stepping)
     slide_before, sample = _total_cost(pipe, z, lengths)
     slide_after, joints = _total_cost(pipe, stepped, lengths)
     valid = valid_frames(lengths, joints.shape[1])
@@ -116,12 +119,12 @@ def test_stepping_lowers_the_cost_and_never_raises_a_takes(tmp_path, lr, gain):
     after = slide_after + keep_cost(joints, sample, valid, cfg) + moved
     assert (after <= before + 1e-6).all(), (before, after)  # each row keeps its best latent, the sample included
     assert after.sum() <= gain * before.sum() + 1e-6
-    single = pipe.step_feet(z[1:2], lengths[1:2])
+    single = step_feet(pipe.decoder, z[1:2], lengths[1:2], pipe.config.stepping)
     np.testing.assert_allclose(single, stepped[1:2], atol=1e-4)  # a batch equals single runs (to float rounding)
 
 
 def test_constrained_takes_and_sequence_segments_are_stepped_too(tmp_path):
-    from mld_core.constraints import Constraints, RootPath
+    from mld_core.take_fixes.constraints import Constraints, RootPath
 
     pipe = _pipe(tmp_path, min_slide_share=0.0, lr=0.05)
     path = Constraints([RootPath([0, 39], np.array([[0.0, 0.0], [0.0, 1.0]]))], steps=2, feature_steps=2)
@@ -141,7 +144,7 @@ def test_constrained_takes_and_sequence_segments_are_stepped_too(tmp_path):
 def test_takes_that_hardly_slide_are_left_as_sampled(tmp_path):
     pipe = _pipe(tmp_path, min_slide_share=1.01)
     z = torch.randn(2, 1, 32, generator=torch.Generator().manual_seed(0))
-    np.testing.assert_array_equal(pipe.step_feet(z, torch.tensor([60, 60])), z)
+    np.testing.assert_array_equal(step_feet(pipe.decoder, z, torch.tensor([60, 60]), pipe.config.stepping), z)
 
 
 def test_the_pipeline_steps_free_final_takes_only(tmp_path):
@@ -155,13 +158,14 @@ def test_the_pipeline_steps_free_final_takes_only(tmp_path):
     off = pipe(["a walk", "a run"], 3.0, **kw)
     assert "stepping_s" not in off.timings
     assert not np.allclose(on.features, off.features)
-    np.testing.assert_allclose(off.features, pipe.repair_rows(raw.features, raw.lengths.tolist()), atol=1e-5)
+    repaired = repair_rows(raw.features, raw.lengths.tolist(), pipe.config.repair)
+    np.testing.assert_allclose(off.features, repaired, atol=1e-5)
 
 
 def _repaired_skating(pipe, features, lengths):
     """Each take's foot skating ratio once the features (not yet repaired) are repaired."""
     n = lengths.tolist()
-    joints = pipe.joints_from_features(pipe.repair_rows(features, n), n)
+    joints = pipe.joints_from_features(repair_rows(features, n, pipe.config.repair), n)
     return np.array([foot_skating_ratio(j[:k], pipe.config.fps) for j, k in zip(joints, n)])
 
 
@@ -171,7 +175,7 @@ def test_a_take_keeps_whichever_latent_skates_less_once_repaired(tmp_path):
     sampled = torch.randn(6, 1, 32, generator=torch.Generator().manual_seed(0))
     other = sampled + 2.0 * torch.randn(6, 1, 32, generator=torch.Generator().manual_seed(1))
     other[2] = sampled[2]  # a take stepping left as sampled
-    kept = pipe.keep_less_skating(sampled, other, lengths)
+    kept = keep_less_skating(pipe.decoder, sampled, other, lengths, pipe.config.repair)
     with torch.inference_mode():
         skate = {name: _repaired_skating(pipe, pipe.latents_to_features(z, lengths), lengths)
                  for name, z in (("sampled", sampled), ("other", other), ("kept", kept))}
@@ -180,7 +184,7 @@ def test_a_take_keeps_whichever_latent_skates_less_once_repaired(tmp_path):
     for i in range(6):
         np.testing.assert_array_equal(kept[i], other[i] if took_other[i] else sampled[i])
     np.testing.assert_array_equal(skate["kept"], np.minimum(skate["sampled"], skate["other"]))
-    single = pipe.keep_less_skating(sampled[3:5], other[3:5], lengths[3:5])
+    single = keep_less_skating(pipe.decoder, sampled[3:5], other[3:5], lengths[3:5], pipe.config.repair)
     np.testing.assert_array_equal(single, kept[3:5])  # a batch equals single runs
 
 
@@ -221,7 +225,7 @@ def _met_and_skating(pipe, out, constraints):
 
 
 def test_a_constrained_take_keeps_the_unstepped_one_only_if_it_skates_less_and_meets_as_much(tmp_path):
-    from mld_core.constraints import Constraints, Loop, RootPath
+    from mld_core.take_fixes.constraints import Constraints, Loop, RootPath
 
     pipe = _pipe(tmp_path, min_slide_share=0.0, lr=0.5, steps=30)
     outcomes = []
@@ -249,7 +253,7 @@ def test_a_constrained_take_keeps_the_unstepped_one_only_if_it_skates_less_and_m
 
 
 def test_meeting_with_and_without_the_slide_in_one_batch_equals_meeting_each_alone(tmp_path):
-    from mld_core.constraints import Constraints, Loop
+    from mld_core.take_fixes.constraints import Constraints, Loop
 
     pipe = _pipe(tmp_path, min_slide_share=0.0, lr=0.5, steps=30)
     constraints = Constraints([Loop()], steps=4, feature_steps=4)
@@ -257,9 +261,9 @@ def test_meeting_with_and_without_the_slide_in_one_batch_equals_meeting_each_alo
                     generator=torch.Generator().manual_seed(0))
     lengths = torch.tensor([40, 40, 40])
     slide = torch.tensor([True, False, True])
-    both = pipe.meet_constraints(z, lengths, constraints, pipe.config.stepping, slide_rows=slide)
-    with_slide = pipe.meet_constraints(z, lengths, constraints, pipe.config.stepping)
-    without = pipe.meet_constraints(z, lengths, constraints)
+    both = meet_constraints(pipe.decoder, z, lengths, constraints, pipe.config.stepping, slide_rows=slide)
+    with_slide = meet_constraints(pipe.decoder, z, lengths, constraints, pipe.config.stepping)
+    without = meet_constraints(pipe.decoder, z, lengths, constraints)
     assert np.abs(with_slide[1] - without[1]).max() > 1e-3  # the slide changes the take: the mask can fail
     for row in range(3):
         np.testing.assert_allclose(both[row], (with_slide if slide[row] else without)[row], atol=1e-4)
@@ -280,7 +284,7 @@ def test_a_stepped_walk_backwards_of_the_bundled_model_skates_less():
 
 @pytest.mark.slow
 def test_walks_on_a_path_walk_cycles_and_sequences_of_the_bundled_model_skate_less_stepped():
-    from mld_core.constraints import Constraints, Loop, RootPath
+    from mld_core.take_fixes.constraints import Constraints, Loop, RootPath
     from mld_core.pipeline import MLDPipeline
 
     pipe = MLDPipeline.from_pretrained()

@@ -197,7 +197,7 @@ def test_contact_term_charges_a_planted_foot_for_sliding_not_for_lifting(folder)
 
 def _add_content_anchor(model_dir) -> None:
     """Fit a content anchor on a few captions with the model's own text encoder and switch it on (weight 1)."""
-    from mld_core import content_anchor
+    from mld_core.condition import content_anchor
     from mld_core.checkpoint import load_config, save_json
     from mld_core.models.text_encoder import load_text_encoder
 

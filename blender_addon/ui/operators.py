@@ -71,8 +71,8 @@ def sequence_of(rows, model_dir) -> list[tuple[str, float]]:
 
 def direction_of(settings, frames: int, obj=None):
     """The panel's Use Keys on the Armature (``obj``'s keys), Loop and Follow Curve as a
-    mld_core.constraints.Constraints (empty when none is set)."""
-    from mld_core.constraints import Constraints, Loop, keys_from_blender, path_along
+    mld_core.take_fixes.constraints.Constraints (empty when none is set)."""
+    from mld_core.take_fixes.constraints import Constraints, Loop, keys_from_blender, path_along
 
     from ..scene.curves import curve_points
 

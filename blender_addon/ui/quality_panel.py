@@ -105,7 +105,7 @@ class MLD_PT_known(bpy.types.Panel):
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
-        from mld_core.coverage import describe_content
+        from mld_core.condition.coverage import describe_content
 
         settings = getattr(context.scene, "mld_motion", None)
         cov = watcher().result(settings.prompt.strip(), _model_key(context)) if settings is not None else None

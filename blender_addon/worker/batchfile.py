@@ -36,7 +36,7 @@ def requests_from_lines(lines: list[PromptLine], *, default_seconds: float, seed
 def read_job_file(path, model_dir=None) -> tuple[list[PromptLine], list[dict]]:
     """(one PromptLine per job: its prompt, or a sequence's first segment; one extra per job: constraints,
     sequence, seed and the job as given, for the manifest)."""
-    from mld_core import constraints as C
+    from mld_core.take_fixes import constraints as C
     from mld_core.inputs import check_seconds, finite_number, model_limits, read_json_file, true_or_false, whole_number
 
     data = read_json_file(path, "job file")

@@ -38,7 +38,7 @@ class Take:
     name: str = ""
     timings: dict = field(default_factory=dict)
     contacts: np.ndarray | None = None  # (T, 4) the features' foot-contact channels (> 0.5 = contact)
-    coverage: object = None  # mld_core.coverage.Coverage of the prompt (None: not checked)
+    coverage: object = None  # mld_core.condition.coverage.Coverage of the prompt (None: not checked)
     badges: object = None  # mld_core.eval.quality.Badges (None: not scored)
     residuals: list | None = None  # [(constraint kind, metres, met)] for a directed take
     segments: list | None = None  # [(prompt, first frame)] of a take made from a prompt sequence
@@ -56,7 +56,7 @@ class Take:
         items = getattr(constraints, "items", None) or ()
         if not items:
             return False
-        from mld_core.constraints import Loop
+        from mld_core.take_fixes.constraints import Loop
 
         return any(isinstance(item, Loop) for item in items)
 

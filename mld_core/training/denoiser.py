@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from mld_core import inputs
 from mld_core.checkpoint import load_config, load_weights, save_json, save_weights
-from mld_core.content_anchor import ContentAnchorConfig
+from mld_core.condition.content_anchor import ContentAnchorConfig
 from mld_core.data.captions import reworded
 from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser
 from mld_core.models.vae import MotionVAE
@@ -193,8 +193,8 @@ def cached_caption_embeddings(path: Path, captions: list[str], make) -> dict:
 
 
 def _write_coverage_index(out: Path, units: list[Unit], encoder) -> None:
-    """The run's prompt-coverage index (mld_core.coverage) from its training captions and content labels."""
-    from mld_core import coverage
+    """The run's prompt-coverage index (mld_core.condition.coverage) from its training captions and content labels."""
+    from mld_core.condition import coverage
 
     pairs = [(c, u.label) for u in units for c in u.captions]
     known = sorted({label for _, label in pairs if label != "?"})

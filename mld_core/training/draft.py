@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mld_core import content_anchor, inputs
+from mld_core import inputs
+from mld_core.condition import content_anchor
 from mld_core.checkpoint import DRAFT_TEXT_WEIGHTS, DraftConfig, load_config, load_weights, save_json, save_weights
 from mld_core.inputs import InputError
 from mld_core.models.denoiser import LatentDenoiser

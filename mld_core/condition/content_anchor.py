@@ -6,7 +6,7 @@ denoiser reads it poorly: "a person walks ahead, then changes direction to their
 The anchor keeps what the prompt's side and style words add to its vector and replaces the rest, the vector of the
 prompt without them, by the mixture of training contents that a linear classifier reads in it:
 
-    q  = unit vector of the prompt without side and style words (mld_core.coverage.normalise)
+    q  = unit vector of the prompt without side and style words (mld_core.condition.coverage.normalise)
     P  = softmax(classifier(q))                      # over side-free contents ("walk-turn-side", "bow", ...)
     p' = normalize(p + weight * (P @ centroids - q))  # p: the prompt's own vector, so its side and style stay
 
@@ -14,8 +14,9 @@ prompt without them, by the mixture of training contents that a linear classifie
 fitted on a model's training captions and their rewordings (``fit``; ``scripts/build_content_anchor.py``) and kept in
 the model folder as ``content_anchor.safetensors`` (fp16, like the weights). Config ``content_anchor``
 (:class:`ContentAnchorConfig`) sets the weight (0: off) and, optionally, how the weight follows the prompt's coverage
-score (mld_core.coverage: the cosine of ``q`` to its nearest training caption): a prompt worded as a training caption
-(score 1) is left as it is, one whose score is ``full_below`` or lower gets the whole weight, linearly in between.
+score (mld_core.condition.coverage: the cosine of ``q`` to its nearest training caption): a prompt worded as a training
+caption (score 1) is left as it is, one whose score is ``full_below`` or lower gets the whole weight, linearly in
+between.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from mld_core.coverage import normalise
+from mld_core.condition.coverage import normalise
 
 FILE_NAME = "content_anchor.safetensors"
 LOGIT_SCALE = 10.0  # unit vectors have small dot products: the classifier reads 10 x q
@@ -126,7 +127,7 @@ class ContentAnchor:
 
 def encode_plain(text_encoder, texts: Sequence[str]) -> np.ndarray:
     """Unit sentence vectors (N, D) of ``texts`` without their side and style words (what the classifier reads)."""
-    from mld_core.coverage import encode
+    from mld_core.condition.coverage import encode
 
     return encode(text_encoder, [normalise(t) or t for t in texts])
 
@@ -161,7 +162,7 @@ def training_texts(data_dir: str | Path, rewordings: int = 4, seed: int = 0) -> 
     """(texts, content labels) of a folder's train split: each caption and ``rewordings`` rewordings of it (with
     other turn verbs, as the default model's denoiser trained)."""
     from mld_core.data.captions import reworded
-    from mld_core.coverage import training_captions
+    from mld_core.condition.coverage import training_captions
 
     captions, contents = training_captions(data_dir, "train")
     rng = np.random.default_rng(seed)

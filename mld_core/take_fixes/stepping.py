@@ -1,21 +1,26 @@
-"""The cost that makes a sampled take step instead of slide: how far its low feet slide over the ground, plus the
-terms that keep what the sample already does (its root's velocity, its turning, its stride length, a foot on the
-floor).
+"""Take fix 1, stepping (config ``stepping``): a Final take's sampled latent z_0 refined until its feet step instead of
+sliding. :func:`step_feet` takes Adam steps on z_0 through the VAE decoder to lower the cost below, so the legs that
+carry the travel come from the decoder itself (it reconstructs stepping walks), not from a repair of the features;
+with ``keep_if_less_skating``, :func:`keep_less_skating` then keeps a free take's sample where that, repaired, skates
+less (a constrained take is judged once its constraints are met: ``meet_constraints.py``).
 
-The pipeline (``MLDPipeline.step_feet``) takes Adam steps on a sampled latent z_0 through the VAE decoder to lower
-this cost, so the legs that carry the travel come from the decoder itself (it reconstructs stepping walks), not from
-a repair of the features. All costs are per take, on joints (B, T, 22, 3) in metres, frames beyond each take's
-length masked out by ``valid`` (B, T).
+The cost: how far the take's low feet slide over the ground, plus the terms that keep what the sample already does
+(its root's velocity, its turning, its stride length, a foot on the floor). All costs are per take, on joints
+(B, T, 22, 3) in metres, frames beyond each take's length masked out by ``valid`` (B, T).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import ClassVar
 
+import numpy as np
 import torch
 
 from mld_core.motion import skeleton as sk
+from mld_core.motion.features import features_to_joints
+from mld_core.take_fixes.repair import RepairConfig, repair_rows
 
 FEET = [sk.JOINT_NAMES.index(n) for n in ("left_ankle", "left_foot", "right_ankle", "right_foot")]
 TOES = [sk.JOINT_NAMES.index(n) for n in ("left_foot", "right_foot")]
@@ -118,3 +123,85 @@ def keep_cost(joints: torch.Tensor, sample: torch.Tensor, valid: torch.Tensor, c
     lifted = torch.relu(feet_heights(joints, valid).amin(-1) - 0.03) / 0.03  # (B, T)
     return (cfg.velocity_weight * _per_take_mean(velocity, pair) + cfg.turn_weight * _per_take_mean(turn, pair)
             + cfg.stride_weight * short ** 2 + cfg.support_weight * _per_take_mean(lifted ** 2, valid))
+
+
+def step_feet(decoder, z: torch.Tensor, lengths: torch.Tensor, cfg: SteppingConfig) -> torch.Tensor:
+    """Sampled latents z_0 (B, n, d) refined so that the takes step instead of sliding: Adam steps through
+    ``decoder`` (a mld_core.decode.LatentDecoder) on the feet's ground slide, keeping each take's root velocity,
+    turning and stride. Takes that hardly slide are returned as sampled; each row is refined on its own (a batch
+    equals single runs)."""
+    with torch.inference_mode(False), torch.enable_grad():
+        mean, std = decoder.mean_std()
+        z0 = z.detach().clone()
+
+        def joints_of(latent, n):  # (b, n, d) -> differentiable joints (b, T, 22, 3)
+            return features_to_joints(decoder.normalised_with_grad(latent, n) * std + mean)
+
+        sample = joints_of(z0, lengths).detach()
+        valid = valid_frames(lengths, sample.shape[1])
+        rows = torch.nonzero(sliding_share(sample, valid, cfg) >= cfg.min_slide_share).flatten()
+        if not len(rows):
+            return z
+        n = lengths[rows].clone()
+        sample, valid = sample[rows][:, : int(n.max())], valid[rows][:, : int(n.max())]
+        start = z0[rows]
+        latent = start.clone().requires_grad_(True)
+        best, best_loss = start.clone(), torch.full((len(rows),), float("inf"), device=z.device)
+        opt = torch.optim.Adam([latent], lr=cfg.lr)
+        for k in range(cfg.steps + 1):  # the last pass only scores the last step
+            with torch.set_grad_enabled(k < cfg.steps):
+                joints = joints_of(latent, n)
+                loss = (slide_cost(joints, valid, cfg) + keep_cost(joints, sample, valid, cfg)
+                        + cfg.prior_weight * ((latent - start) ** 2).mean(dim=(1, 2)))  # (b,)
+            better = loss.detach() < best_loss  # each row keeps its best latent: never worse than sampled
+            best[better], best_loss[better] = latent.detach()[better], loss.detach()[better]
+            if k < cfg.steps:
+                opt.zero_grad()
+                # rows independent: each row's gradient is its own loss's; only the latent's (the decoder's
+                # weights need none: that would cost about 30% more per step)
+                loss.sum().backward(inputs=[latent])
+                opt.step()
+        out = z0.clone()
+        out[rows] = best
+    return out
+
+
+def keep_less_skating(decoder, sampled: torch.Tensor, stepped: torch.Tensor, lengths: torch.Tensor,
+                      repair: RepairConfig) -> torch.Tensor:
+    """Per free take, its stepped latent (B, n, d) unless the take, decoded and repaired (``repair``, whether or not
+    the call repairs), skates more than its sampled latent decoded and repaired; then the sampled one. Stepping
+    lowers the slide of the unrepaired feet; some samples' feet the repairs plant better unstepped."""
+    from mld_core.eval.quality import foot_skating_ratio
+
+    rows = torch.nonzero((stepped != sampled).flatten(1).any(1)).flatten()
+    if not len(rows):
+        return stepped
+    n = lengths[rows].tolist()
+
+    def skating(z: torch.Tensor) -> np.ndarray:  # (b,) the repaired takes' foot skating ratios
+        with torch.inference_mode():
+            features = decoder.features(z, lengths[rows])
+        joints = decoder.joints(repair_rows(features, n, repair), n)
+        return np.array([foot_skating_ratio(j[:k], decoder.fps) for j, k in zip(joints, n)])
+
+    worse = torch.as_tensor(skating(stepped[rows]) > skating(sampled[rows]))
+    out = stepped.clone()
+    out[rows[worse]] = sampled[rows[worse]]
+    return out
+
+
+@dataclass
+class Stepping:
+    """The fix: the takes' latents stepped (:func:`step_feet`); a free take's kept only where, repaired, it skates no
+    more than its sample (config ``keep_if_less_skating``)."""
+
+    config: SteppingConfig
+    repair: RepairConfig  # how a free take is judged: as these repairs leave it
+    constrained: bool = False  # the takes have constraints: they are judged when met (meet_constraints.py)
+    timings: ClassVar[tuple] = ("stepping_s",)
+
+    def apply(self, takes, decoder):
+        stepped = step_feet(decoder, takes.latents, takes.lengths, self.config)
+        if self.config.keep_if_less_skating and not self.constrained:
+            stepped = keep_less_skating(decoder, takes.sampled, stepped, takes.lengths, self.repair)
+        return replace(takes, latents=stepped, stepped=True)

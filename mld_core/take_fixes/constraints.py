@@ -1,6 +1,6 @@
 """What a take must hit, as differentiable costs on its joints: poses at given frames, a root path on the ground,
-a loop. The pipeline refines its sampled latent, then the decoded features, against them (stage 5 of
-``MLDPipeline.__call__``, ``MLDPipeline.meet_constraints``); the free path never touches this module.
+a loop. Take fix 2 (``meet_constraints.py``) refines a take's sampled latent, then its decoded features, against
+them; the free path never touches this module.
 
 Joints are the pipeline's output frame: metres, Y up, the root starting at the origin facing +Z. Frames are model
 frames (20 fps); files with another fps are converted when read (:func:`read_keys`, :func:`read_path`). Each
@@ -22,7 +22,7 @@ import torch
 from mld_core.inputs import InputError, check_prompt, finite_number, int_in_range, true_or_false, whole_number
 from mld_core.motion import skeleton as sk
 from mld_core.motion.features import FOOT_CONTACT, ROOT_LIN_VEL, features_to_joints
-from mld_core.motion.repair import FOOT_JOINTS
+from mld_core.take_fixes.repair import FOOT_JOINTS
 from mld_core.motion.skeleton import JOINT_NAMES
 
 JOINT_INDEX = {name: i for i, name in enumerate(JOINT_NAMES)}
@@ -258,7 +258,7 @@ class Constraints:
         for n, item in enumerate(self.items, start=1):
             if not isinstance(item, CONSTRAINT_KINDS):
                 raise InputError(f"Constraints item {n} is a {type(item).__name__}, not a constraint: use "
-                                 f"{', '.join(k.__name__ for k in CONSTRAINT_KINDS)} (mld_core.constraints)")
+                                 f"{', '.join(k.__name__ for k in CONSTRAINT_KINDS)} (mld_core.take_fixes.constraints)")
         self.items = list(self.items)
         for name in ("steps", "feature_steps"):
             setattr(self, name, int_in_range(getattr(self, name), f"Constraints {name}", 0, MAX_STEPS))

@@ -1,4 +1,5 @@
-"""Inference-time repairs of generated motion: planted feet that do not slide, and one skeleton per take.
+"""Take fix 3, repair (config ``repair``): a free take's features with planted feet that do not slide and one skeleton
+(:class:`Repair`, :func:`repair_rows`; constrained takes are not repaired: their constraints place root and joints).
 
 - :func:`plant_feet` re-estimates the root's ground velocity (feature channels 1-2) from the pose: while a foot
   joint is in contact (the take's own contact channels, and near its lowest height), the root moves so that the
@@ -15,7 +16,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import ClassVar
 
 import numpy as np
 
@@ -58,6 +60,28 @@ def repair_features(features: np.ndarray, config: RepairConfig | None = None) ->
     if cfg.lock_feet:
         out = lock_feet(out, cfg)
     return out.astype(np.asarray(features).dtype)
+
+
+def repair_rows(features: np.ndarray, lengths: list, config: RepairConfig) -> np.ndarray:
+    """Each row's first ``lengths[i]`` frames of ``features`` (B, T, F) with the repairs of ``config`` applied (a copy;
+    263-d features only)."""
+    if features.shape[-1] != 263 or not (config.bone_lengths or config.plant_feet or config.lock_feet):
+        return features
+    out = features.copy()
+    for i, n in enumerate(lengths):
+        out[i, :n] = repair_features(features[i, :n], config)
+    return out
+
+
+@dataclass
+class Repair:
+    """The fix: every take's features repaired (:func:`repair_rows`)."""
+
+    config: RepairConfig
+    timings: ClassVar[tuple] = ("repair_s",)
+
+    def apply(self, takes, decoder):
+        return replace(takes, features=repair_rows(takes.features, takes.lengths.tolist(), self.config))
 
 
 def _root_half_angle(features: np.ndarray) -> np.ndarray:
