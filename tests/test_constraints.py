@@ -363,3 +363,22 @@ def test_a_wave_after_a_walk_still_waves():  # the bundled model
     # smoothing the whole segment in the continuation's feature stage damped the swings: 2 of 8 waved (free 2 s
     # takes of the prompt: 13 of 16); smoothing only the change: 6 of 8
     assert sum(waved) >= 5, waved
+
+
+def test_python_readers_and_jobs_use_the_one_json_reader(tmp_path):
+    """read_keys / read_path from Python take the same limits as the command line, and a job's loop is a real switch."""
+    from mld_core.inputs import InputError
+    from mld_core.take_fixes import constraints as C
+
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 5000 + "]" * 5000)
+    with pytest.raises(InputError, match="nested more than"):
+        C.read_keys(deep)
+    huge = tmp_path / "huge.json"
+    huge.write_text('{"fps": 20, "keys": [{"frame": 1e308, "joints": {"head": [0, 1.7, 0]}}]}')
+    with pytest.raises(InputError, match="finite number"):
+        C.read_keys(huge)
+    with pytest.raises(InputError, match="loop must be true or false"):
+        C.constraints_from_job({"loop": "false"}, "job 1")
+    assert C.constraints_from_job({"loop": False}, "job 1").items == []
+    assert [type(i).__name__ for i in C.constraints_from_job({"loop": True}, "job 1").items] == ["Loop"]

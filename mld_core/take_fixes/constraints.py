@@ -11,7 +11,6 @@ constraint object checks itself when made (frames whole and 0 or more, coordinat
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -19,7 +18,8 @@ from typing import Mapping, Sequence
 import numpy as np
 import torch
 
-from mld_core.inputs import InputError, check_prompt, finite_number, int_in_range, true_or_false, whole_number
+from mld_core.inputs import (InputError, check_prompt, finite_number, int_in_range, read_json_file, true_or_false,
+                             whole_number)
 from mld_core.motion import skeleton as sk
 from mld_core.motion.features import FOOT_CONTACT, ROOT_LIN_VEL, features_to_joints
 from mld_core.take_fixes.repair import FOOT_JOINTS
@@ -388,12 +388,8 @@ def keys_from_blender(poses: dict[int, dict[str, Sequence[float]]], origin: Sequ
 
 # -- files ----------------------------------------------------------------------------------------------------------
 def _load_json(path: Path, what: str):
-    try:
-        return json.loads(Path(path).read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise InputError(f"cannot read {what} {path}: {exc.strerror or exc}") from None
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise InputError(f"{what} {path} is not valid JSON: {exc}") from None
+    """The user's JSON file, read by the one reader of user files (size, depth and number limits)."""
+    return read_json_file(path, what)
 
 
 def _model_frame(frame, fps: float, where: str) -> int:
@@ -484,6 +480,6 @@ def constraints_from_job(job: dict, where: str) -> Constraints:
         items.append(keys_from_data(job["keys"], f"{where}: keys"))
     if job.get("path") is not None:
         items.append(path_from_data(job["path"], f"{where}: path"))
-    if job.get("loop"):
+    if job.get("loop") is not None and true_or_false(job["loop"], f"{where}: loop"):
         items.append(Loop())
     return Constraints(items)
