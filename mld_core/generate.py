@@ -151,7 +151,8 @@ def _load(args):
     from mld_core.pipeline import MLDPipeline
 
     try:
-        return MLDPipeline.from_pretrained(args.model, precision=args.precision, draft_precision=args.draft_precision)
+        return MLDPipeline.from_pretrained(args.model, precision=args.precision, draft_precision=args.draft_precision,
+                                           device=args.device)
     except CheckpointError as exc:
         raise InputError(str(exc)) from None
     except ImportError as exc:
@@ -252,7 +253,7 @@ def _run(args, take_report) -> int:
 
 
 def register(groups) -> None:
-    from mld_core.cli import PRECISION_CHOICES, PRECISION_HELP
+    from mld_core.cli import DEVICE_HELP, PRECISION_CHOICES, PRECISION_HELP
 
     p = groups["root"].add_parser("generate", help="generate motion from text (or an action / nothing)")
     p.add_argument("prompt", nargs="?", default=None, help="what the motion should be")
@@ -292,6 +293,8 @@ def register(groups) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     p.add_argument("--precision", choices=PRECISION_CHOICES, default="fp32", help=PRECISION_HELP)
+    p.add_argument("--device", default="cpu", help=f"where the model runs: {DEVICE_HELP}; a take is the same on "
+                   "every device up to float rounding (its noise is drawn on the CPU)")
     p.add_argument("--draft-precision", choices=("auto", "fp32", "bf16"), default="auto",
                    help="the Draft's precision: auto (default) is bf16 on CPUs with native bfloat16 (AVX512-BF16, AMX), "
                         "fp32 elsewhere; fp32 gives the same Draft take on every CPU (docs/draft.md)")

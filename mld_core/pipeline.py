@@ -141,7 +141,7 @@ class MLDPipeline:
                     draft_text_encoder.pack_for_cpu_inference()
             d = config.draft
             self.draft_scheduler = LCMScheduler(config.scheduler, d.original_steps, d.timestep_scaling, d.sigma_data,
-                                                d.fresh_noise)
+                                                d.fresh_noise).to(self.device)
         self._text_cache: OrderedDict = OrderedDict()  # prompt -> its TextEmbedding (one row, its own tokens)
         self._draft_text_cache: OrderedDict = OrderedDict()  # the same for the Draft's text encoder
         self.coverage_index = None  # mld_core.coverage.CoverageIndex, from the model folder's coverage_index.npz
