@@ -545,7 +545,8 @@ def shard_record(shard: tuple, manifest: dict, model_dir) -> dict:
 def merge(args) -> int:
     """--merge: the shards' manifests (and with --bvh-dir their BVH files) joined into one library manifest."""
     out, bvhs = shards.merge_manifests(args.merge, args.out, args.bvh_dir, args.overwrite)
-    print(f"wrote {out} ({len(args.merge)} shards)" + (f" and {len(bvhs)} BVH file(s) in {args.bvh_dir}" if bvhs else ""))
+    gathered = f" and {len(bvhs)} BVH file(s) in {args.bvh_dir}" if bvhs else ""
+    print(f"wrote {out} ({len(args.merge)} shards){gathered}")
     return EXIT_OK
 
 

@@ -184,11 +184,15 @@ def test_a_process_environment_that_is_not_torchrun_s_is_refused(folder, tmp_pat
 def test_a_batch_too_small_for_the_processes_is_refused(folder, tmp_path, capsys, monkeypatch):
     """Every process needs rows of each batch: checked before the process group starts or anything is written, so
     a run cannot be resumed with more processes than its batch has rows either."""
+    vae_cfg, _ = _configs(tmp_path)
+    assert main(["train", "vae", "--data", str(folder), "--out", str(tmp_path / "run"), "--steps", "1",
+                 "--threads", "1", "--config", str(vae_cfg)]) == 0  # a run of one process ...
+    capsys.readouterr()
     for name, value in _torchrun_env(0, 8, _free_port()).items():
         monkeypatch.setenv(name, value)
-    vae_cfg, den_cfg = _configs(tmp_path)
-    refused(["train", "vae", "--data", folder, "--out", tmp_path / "run", "--steps", "1", "--config", vae_cfg],
-            tmp_path, capsys, "fewer than the 8 processes")
+    for args in (["--out", tmp_path / "new"], ["--out", tmp_path / "run", "--resume"]):  # ... resumed by 8
+        refused(["train", "vae", "--data", folder, "--steps", "2", "--config", vae_cfg, *args], tmp_path, capsys,
+                "fewer than the 8 processes")
     refused(["train", "evaluator", "--data", folder, "--out", tmp_path / "ev", "--batch-size", "4"], tmp_path, capsys,
             "at least the 8 processes")
 

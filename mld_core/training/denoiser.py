@@ -325,7 +325,8 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     config.provenance = {**base.provenance, "denoiser_training": {k: v for k, v in asdict(cfg).items() if k != "denoiser"}}
     if rt.is_main:
         shutil.copyfile(vae_dir / "vae.safetensors", out / "vae.safetensors")
-        save_json(out / "train_config.json", {**asdict(cfg), "stage": "denoiser", "run": rt.describe(cfg.batch_size)})
+        save_json(out / "train_config.json", {**asdict(cfg), "stage": "denoiser",
+                                              "run": rt.describe(cfg.batch_size, "latents")})
 
     def save():
         config.provenance["denoiser_steps"] = step
@@ -373,7 +374,8 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
         bar.update(1)
         bar.set_postfix(loss=f"{running:.4f}")
         if (step % cfg.save_every == 0 or budget.done(step)) and rt.is_main:
-            log.write(json.dumps({"step": step, "loss": running, "minutes": round(budget.minutes, 2)}) + "\n")
+            log.write(json.dumps({"step": step, "loss": running, "minutes": round(budget.minutes, 2),
+                                  "seconds": round(budget.minutes * 60, 3)}) + "\n")
             log.flush()
             save()
     bar.close()

@@ -319,7 +319,8 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
         bar.set_postfix(loss=f"{loss.item():.4f}", kl=f"{parts['kl']:.1f}", fps=f"{frames_seen / (time.monotonic() - t0):.0f}")
         last = budget.done(step)
         if (step % cfg.val_every == 0 or last) and rt.is_main:
-            record = {"step": step, "loss": loss.item(), **parts, "minutes": round(budget.minutes, 2)}
+            record = {"step": step, "loss": loss.item(), **parts, "minutes": round(budget.minutes, 2),
+                      "seconds": round(budget.minutes * 60, 3)}
             if val:
                 record["val_mpjpe_mm"], record["val_global_mpjpe_mm"] = validate_mpjpe(vae, val, mean, std,
                                                                                        cfg.vae.max_frames)
