@@ -67,7 +67,7 @@ def _addon_package():
 
 
 _addon_package()  # puts mld_core (the vendored copy or the checkout) on sys.path
-from mld_core import inputs  # noqa: E402
+from mld_core import inputs, shards  # noqa: E402
 from mld_core.fileio import OutputSet  # noqa: E402
 from mld_core.take_report import seam_lines, side_report  # noqa: E402
 
@@ -90,6 +90,9 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--prompt", metavar="TEXT", action="append", help="a prompt (repeat for several takes)")
     src.add_argument("--jobs", metavar="FILE", help="JSON job file: prompts with keys / path / loop, or sequences "
                      "(docs/control.md)")
+    src.add_argument("--merge", metavar="MANIFEST", nargs="+",
+                     help="join the manifests of every --shard of a run into one (--out MERGED.json; --bvh-dir DIR "
+                          "gathers their BVH files); no Blender work")
     parser.add_argument("--out", required=True, metavar="OUT.blend", help="the .blend to write")
     parser.add_argument("--armature", metavar="NAME", help="armature object to key (default: the canonical one)")
     parser.add_argument("--seconds", type=float, default=4.0, help="length of lines without a frame count (4)")
@@ -130,6 +133,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "points as in the take, feet may sink")
     rt.add_argument("--nla", action="store_true", help="put each take on its own NLA track instead of assigning it")
     importlib.import_module(f"{_addon_package().__name__}.worker.export_plan").add_arguments(parser)
+    parser.add_argument("--shard", metavar="I/N", default=None,
+                        help="make only shard I of N (from 0): lines I, I + N, ... with the seeds of the whole run; "
+                             "--merge joins the shards' manifests (docs/training.md)")
     return parser
 
 
@@ -348,7 +354,6 @@ def _prepare_scene(args, addon):
         fps = float(args.fps)
         scene.render.fps, scene.render.fps_base = max(1, round(fps)), round(fps) / fps
     rig = importlib.import_module(addon.__name__ + ".scene.canonical_armature")
-    apply = importlib.import_module(addon.__name__ + ".scene.key_takes")
     if args.rig:
         fps, excluded, hidden = _rig_file_scene(Path(args.rig))
         if fps and not args.fps:  # the rig file's frame rate, unless --fps says otherwise
@@ -399,6 +404,7 @@ class _Inputs:
     retarget: object  # mld_core.rig.keying.RetargetSettings
     bone_map: object  # a BoneMap from --bone-map, or None
     export: object = None  # worker.export_plan.ExportPlan for --export (the files under the takes' planned names)
+    shard: tuple | None = None  # --shard: ((I, N), lines in the whole run, their fingerprint)
 
 
 def checked_inputs(args, addon) -> _Inputs:
@@ -422,6 +428,11 @@ def checked_inputs(args, addon) -> _Inputs:
     if args.side_redraws is not None:
         redraws = inputs.int_in_range(args.side_redraws, "--side-redraws", 0, inputs.MAX_SIDE_REDRAWS)
         requests = [r.with_(extra={**r.extra, "side_redraws": redraws}) for r in requests]
+    shard = None
+    if args.shard is not None:  # shard I of N: lines I, I + N, ... with the seeds they have in the whole run
+        shard = (inputs.check_shard(args.shard), len(lines), shards.lines_fingerprint(lines))
+        keep = shards.shard_lines(len(lines), shard[0])
+        lines, requests = [lines[i] for i in keep], [requests[i] for i in keep]
     inputs.check_fps(args.fps, "--fps")
     inputs.number_in_range(args.tolerance, "--tolerance", 0, 180)
     paths = output_paths(args)
@@ -436,10 +447,12 @@ def checked_inputs(args, addon) -> _Inputs:
     if missing:
         raise BatchError(env.dependency_message(missing))
     retarget, bone_map = retarget_inputs(args, addon)
-    return _Inputs(lines, requests, model_dir, paths, bvh_dir, retarget, bone_map, export)
+    return _Inputs(lines, requests, model_dir, paths, bvh_dir, retarget, bone_map, export, shard)
 
 
 def run(args) -> int:
+    if args.merge:
+        return merge(args)
     addon = _addon_package()
     t_start = time.perf_counter()
     # 1. Inputs, all checked before any work.
@@ -468,6 +481,8 @@ def run(args) -> int:
     env = importlib.import_module(f"{addon.__name__}.env")
     manifest = _manifest(args, inp.paths, obj, map_source, pipe, inp.model_dir, inp.retarget, scene, records, env,
                          load_s, t_start)
+    if inp.shard is not None:
+        manifest["shard"] = shard_record(inp.shard, manifest, inp.model_dir)
     write_outputs(args, addon, inp.paths, scene, obj, manifest, bvh_takes, t_start, export)
     print(f"wrote {inp.paths['blend']} ({len(records)} take{'s' if len(records) != 1 else ''}) and "
           f"{inp.paths['manifest']}")
@@ -542,6 +557,25 @@ def write_outputs(args, addon, paths: dict, scene, obj, manifest: dict, bvh_take
         manifest["timing"]["total_s"] = round(time.perf_counter() - t_start, 4)
         text = json.dumps(manifest, indent=2) + "\n"
         outputs.stage(paths["manifest"], lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
+
+
+def shard_record(shard: tuple, manifest: dict, model_dir) -> dict:
+    """What a shard's manifest says about itself: which shard, of how many lines, and the model and settings its
+    takes were made with (the device aside: a machine's own choice)."""
+    (index, count), total, prompts = shard
+    settings = {k: v for k, v in manifest["settings"].items() if k not in shards.MACHINE_SETTINGS}
+    settings.update(model_id=manifest["model_id"], model=shards.model_fingerprint(model_dir), prompts=prompts,
+                    armature=manifest["armature"], bone_map=manifest["rig"]["bone_map"],
+                    bvh=any("bvh" in take for take in manifest["takes"]))
+    return shards.shard_record((index, count), total, settings)
+
+
+def merge(args) -> int:
+    """--merge: the shards' manifests (and with --bvh-dir their BVH files) joined into one library manifest."""
+    out, bvhs = shards.merge_manifests(args.merge, args.out, args.bvh_dir, args.overwrite)
+    gathered = f" and {len(bvhs)} BVH file(s) in {args.bvh_dir}" if bvhs else ""
+    print(f"wrote {out} ({len(args.merge)} shards){gathered}")
+    return EXIT_OK
 
 
 def _manifest(args, paths, obj, map_source, pipe, model_dir, retarget, scene, records, env, load_s,

@@ -140,8 +140,9 @@ class RawMotionBaseline:
         torch.manual_seed(seed)
         # The same inference path as the pipeline's denoiser: its precision, prepacked weights on a CPU.
         self.dtype = next(pipe.denoiser.parameters()).dtype
-        self.model = LatentDenoiser(cfg).eval().to(self.dtype)
-        self.model.transformer.pack_for_cpu_inference()
+        self.device = getattr(pipe, "device", torch.device("cpu"))
+        self.model = LatentDenoiser(cfg).eval().to(self.device, self.dtype)
+        self.model.transformer.pack_for_cpu_inference()  # no-op off the CPU
         self.config = cfg
 
     @property
@@ -153,9 +154,11 @@ class RawMotionBaseline:
         B = len(prompts)
         if self.cond == "text":
             text = self.pipe.text_encoder(list(prompts))
+            text = type(text)(**{k: v.to(self.device) for k, v in vars(text).items()})
             return self.model.condition_tokens(B, text=text), self.model.null_tokens(B)
         if self.cond == "action":
-            return self.model.condition_tokens(B, actions=torch.zeros(B, dtype=torch.long)), self.model.null_tokens(B)
+            actions = torch.zeros(B, dtype=torch.long, device=self.device)
+            return self.model.condition_tokens(B, actions=actions), self.model.null_tokens(B)
         return self.model.null_tokens(B), self.model.null_tokens(B)
 
     def guidance(self, guidance_scale: float | None) -> float:
@@ -178,25 +181,27 @@ class RawMotionBaseline:
         sched = DDIMScheduler(self.pipe.config.scheduler) if scheduler == "ddim" else DDPMScheduler(self.pipe.config.scheduler)
         sched.set_timesteps(steps)
         gen = torch.Generator().manual_seed(seed)
-        x = torch.randn(B, T, self.feature_dim, generator=gen)  # (B, T, 263) normalised frames
+        x = torch.randn(B, T, self.feature_dim, generator=gen).to(self.device)  # (B, T, 263) normalised frames
         use_guidance = s != 1.0 and self.cond != "none"
         both = (torch.cat([null, cond]) if use_guidance else cond).to(self.dtype)
-        lengths = torch.full((B * (2 if use_guidance else 1),), T)
+        lengths = torch.full((B * (2 if use_guidance else 1),), T, device=self.device)
         t0 = time.perf_counter()
         run = 0
         for t in sched.timesteps:
             if max_steps is not None and run >= max_steps:
                 break
             x_in = torch.cat([x, x]) if use_guidance else x
-            eps = self.model(x_in.to(self.dtype), torch.full((x_in.shape[0],), int(t)), both, lengths).float()
+            t_batch = torch.full((x_in.shape[0],), int(t), device=self.device)
+            eps = self.model(x_in.to(self.dtype), t_batch, both, lengths).float()
             if use_guidance:
                 e_null, e_cond = eps.chunk(2)
                 eps = e_null + s * (e_cond - e_null)
-            out = sched.step(eps, t, x, generator=gen) if scheduler == "ddpm" else sched.step(eps, t, x)
+            out = sched.step(eps, t, x, generator=gen) if scheduler == "ddpm" and self.device.type == "cpu" else \
+                sched.step(eps, t, x)  # (a CPU generator cannot draw a GPU's noise)
             x = out[0] if isinstance(out, tuple) else out
             run += 1
         t_diff = time.perf_counter() - t0
-        feats = x.numpy() * self.pipe.std + self.pipe.mean
+        feats = x.float().cpu().numpy() * self.pipe.std + self.pipe.mean
         return {"features": feats.astype(np.float32), "condition_s": t_cond, "diffusion_s": t_diff,
                 "steps_run": run, "steps": len(sched.timesteps)}
 
@@ -331,13 +336,14 @@ def raw_flops(baseline: RawMotionBaseline, prompt: str, steps: int, guidance_sca
 def run_bench(model=None, *, baseline: str | None = None, prompts: int = 32, seconds: float = 4.0,
               steps: int | None = None, guidance_scale: float | None = None, ddpm_prompts: int = 2,
               ddpm_timed_steps: int = 20, raw_ddim_prompts: int = 8, threads: int | None = None,
-              progress: bool = True, log=print, precision: str = "fp32") -> dict:
+              progress: bool = True, log=print, precision: str = "fp32", device: str = "cpu") -> dict:
     """Time MLD (and the raw baseline) on the same prompts; returns the JSON-ready result."""
     from mld_core.pipeline import MLDPipeline
 
     if threads:
         torch.set_num_threads(threads)
-    pipe = model if hasattr(model, "denoiser") else MLDPipeline.from_pretrained(model, precision=precision)
+    pipe = model if hasattr(model, "denoiser") else MLDPipeline.from_pretrained(model, precision=precision,
+                                                                                device=device)
     if pipe.denoiser is None:
         raise ValueError("this model folder has only a VAE; the benchmark needs a denoiser")
     frames = pipe.frames_for(seconds)
@@ -348,6 +354,7 @@ def run_bench(model=None, *, baseline: str | None = None, prompts: int = 32, sec
     result = {"model_id": pipe.model_id, "seconds": seconds, "frames": frames, "prompts": prompts,
               "cpus": os.cpu_count(),
               "threads": torch.get_num_threads(), "torch": torch.__version__, "machine": platform.machine(),
+              "device": _device_name(getattr(pipe, "device", torch.device("cpu"))),
               "processor": platform.processor() or platform.machine(), "guidance_scale": guidance,
               "precision": getattr(pipe, "precision", "fp32"), "draft_precision": getattr(pipe, "draft_precision", ""),
               "draft_text_layers": getattr(pipe, "draft_text_layers", None),
@@ -481,7 +488,8 @@ def format_bench(result: dict) -> str:
     fmt = lambda r: "| " + " | ".join(str(c).ljust(w) for c, w in zip(r, widths)) + " |"  # noqa: E731
     lines = [f"AITS = text encoding + diffusion + decoding per prompt; {result['frames']} frames "
              f"({result['seconds']:g} s), guidance {result['guidance_scale']:g}, {result['prompts']} prompts, "
-             f"{result['threads']} CPU thread(s), {result.get('precision', 'fp32')} denoiser, torch {result['torch']}",
+             f"{result['threads']} CPU thread(s), {result.get('precision', 'fp32')} denoiser, torch {result['torch']}"
+             + (f", on {result['device']}" if result.get("device", "cpu") != "cpu" else ""),
              fmt(head), "|" + "|".join("-" * (w + 2) for w in widths) + "|"] + [fmt(r) for r in rows]
     if any(not m["trained"] for m in result["methods"]):
         lines.append("The raw-motion baseline has UNTRAINED (random) weights: its rows measure speed and FLOPs only. "
@@ -491,8 +499,15 @@ def format_bench(result: dict) -> str:
     return "\n".join(lines + notes + ([note] if note else []))
 
 
+def _device_name(device: torch.device) -> str:
+    """The device timed, in words: the CPU, or the GPU's name."""
+    if device.type == "cuda":
+        return f"cuda ({torch.cuda.get_device_name(device)})"
+    return device.type
+
+
 def register(groups) -> None:
-    from mld_core.cli import PRECISION_CHOICES, PRECISION_HELP
+    from mld_core.cli import DEVICE_HELP, PRECISION_CHOICES, PRECISION_HELP
 
     p = groups["root"].add_parser(
         "bench", help="average inference time per prompt (AITS) and FLOPs; --baseline raw adds raw-motion diffusion",
@@ -510,6 +525,7 @@ def register(groups) -> None:
                    help="raw DDPM at batch 32: steps timed before extrapolating to 1000 (default 20)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     p.add_argument("--precision", choices=PRECISION_CHOICES, default="fp32", help=PRECISION_HELP)
+    p.add_argument("--device", default="cpu", help=f"where the model runs: {DEVICE_HELP}")
     p.add_argument("--json", default=None, help="also write the numbers here")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run_cli)
@@ -539,7 +555,7 @@ def _run_cli(args) -> int:
         result = run_bench(args.model, baseline=args.baseline, prompts=args.prompts, seconds=args.seconds,
                            steps=args.steps, guidance_scale=args.guidance, ddpm_prompts=args.ddpm_prompts,
                            ddpm_timed_steps=args.ddpm_timed_steps, threads=args.threads,
-                           progress=not args.no_progress, precision=args.precision)
+                           progress=not args.no_progress, precision=args.precision, device=args.device)
     except (CheckpointError, FileNotFoundError, ValueError) as exc:
         raise UsageError(str(exc)) from None
     print(format_bench(result))

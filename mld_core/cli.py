@@ -2,7 +2,7 @@
 
 Each feature module contributes its own sub-commands through a ``register(groups)`` function, so the
 CLI stays a thin dispatcher. ``groups`` maps a group name to an argparse sub-parsers object:
-``"root"`` (top level: generate, evaluate, bench), ``"data"`` (data prepare ...), ``"train"``
+``"root"`` (top level: generate, evaluate, bench, merge), ``"data"`` (data prepare ...), ``"train"``
 (train vae|denoiser|evaluator). A registered parser sets ``func=callable(args) -> int``.
 Errors meant for the user are raised as ``UsageError`` and printed without a traceback (exit 2).
 """
@@ -14,12 +14,14 @@ import importlib
 import sys
 import warnings
 
-from mld_core.inputs import MAX_SIDE_REDRAWS, InputError, check_seed, check_threads, int_in_range
+from mld_core.inputs import MAX_SIDE_REDRAWS, InputError, check_device, check_seed, check_threads, int_in_range
 
 # Shared by generate, evaluate and bench (names here so that building the parser needs no torch).
 PRECISION_CHOICES = ("fp32", "bf16")
 PRECISION_HELP = ("denoiser precision: fp32 (default) or bf16 (faster on CPUs with AVX512-BF16 or AMX; samples "
                   "close to but not equal to fp32's)")
+
+DEVICE_HELP = "cpu (default), cuda, mps or auto (CUDA, then MPS, then the CPU)"
 
 # Modules that contribute commands. A module listed here that is missing is skipped, so the CLI
 # keeps working while parts are being built.
@@ -29,6 +31,7 @@ COMMAND_MODULES = (
     "mld_core.generate",
     "mld_core.eval.cli",
     "mld_core.bench",
+    "mld_core.shards",
 )
 
 
@@ -44,6 +47,8 @@ def check_common_options(args) -> None:
         check_seed(args.seed, what="--seed")
     if getattr(args, "side_redraws", None) is not None:
         int_in_range(args.side_redraws, "--side-redraws", 0, MAX_SIDE_REDRAWS)
+    if getattr(args, "device", None) is not None:  # cpu, cuda, mps or auto: resolved to what torch will use
+        args.device = check_device(args.device, "--device")
 
 
 def build_parser() -> argparse.ArgumentParser:

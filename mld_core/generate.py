@@ -11,6 +11,7 @@ import numpy as np
 from mld_core import inputs
 from mld_core.fileio import OutputSet
 from mld_core.inputs import InputError, PromptLine
+from mld_core.shards import shard_lines
 
 
 
@@ -19,10 +20,14 @@ def read_prompt_file(path: Path) -> list[PromptLine]:
     return inputs.read_prompt_file(path)
 
 
-def write_npz(path: Path, out, records: list | None = None, outputs: OutputSet | None = None) -> None:
-    """``records``: per row a JSON-able dict (coverage, badges), stored as one JSON string ``quality``. Staged in
+def write_npz(path: Path, out, records: list | None = None, outputs: OutputSet | None = None,
+              shard: dict | None = None, lines: list | None = None) -> None:
+    """``records``: per row a JSON-able dict (coverage, badges), stored as one JSON string ``quality``. ``shard``
+    (a shard's record, mld_core.shards) and ``lines`` (each row's prompt line, 0-based) for a sharded run. Staged in
     ``outputs`` when given (committed with the other outputs), else written on its own."""
     extra = {"quality": np.array(json.dumps(records))} if records and any(records) else {}
+    if shard is not None:
+        extra.update(shard=np.array(json.dumps(shard)), lines=np.asarray(lines, np.int64))
 
     def save(tmp):
         with open(tmp, "wb") as f:
@@ -38,20 +43,22 @@ def write_npz(path: Path, out, records: list | None = None, outputs: OutputSet |
         single.stage(path, save)
 
 
-def bvh_paths(path: Path, n: int) -> list[Path]:
+def bvh_paths(path: Path, n: int, rows: list[int] | None = None) -> list[Path]:
+    """The BVH file of each of ``n`` rows (``rows``: a shard's rows, numbered as in the whole run of ``n``)."""
     path = Path(path)
     if n == 1:
         return [path]
-    return [path.with_name(f"{path.stem}_{i:03d}{path.suffix or '.bvh'}") for i in range(n)]
+    return [path.with_name(f"{path.stem}_{i:03d}{path.suffix or '.bvh'}") for i in (range(n) if rows is None else rows)]
 
 
-def write_bvhs(path: Path, out, fps: int, outputs: OutputSet) -> list[Path]:
-    """The canonical skeleton with its rotations, one file per generated row, staged in ``outputs``."""
+def write_bvhs(path: Path, out, fps: int, outputs: OutputSet, names: list[Path] | None = None) -> list[Path]:
+    """The canonical skeleton with its rotations, one file per generated row (named ``names``, default
+    bvh_paths), staged in ``outputs``."""
     from mld_core.motion.bvh import write_canonical_bvh
     from mld_core.motion.quaternion import resample_quaternions
     from mld_core.motion.rotations import features_to_rotations
 
-    paths = bvh_paths(path, len(out.lengths))
+    paths = names or bvh_paths(path, len(out.lengths))
     for i, p in enumerate(paths):
         n = int(out.lengths[i])
         quats, root = features_to_rotations(out.features[i, :n])
@@ -114,13 +121,20 @@ def _constraints(args):
 
 
 def _checked_args(args) -> tuple[list[PromptLine], list[float], object]:
-    """Every input checked before the model loads or anything is written: (lines, seconds per line, constraints)."""
+    """Every input checked before the model loads or anything is written: (lines, seconds per line, constraints).
+    With --shard, the shard's lines (their indices in the file: args.line_indices, of args.lines_total)."""
     inputs.check_threads(args.threads, "--threads")
     lines = _prompt_lines(args)
+    args.lines_total, args.line_indices = len(lines), list(range(len(lines)))
+    if args.shard is not None:  # shard I of N: lines I, I + N, ... (their seeds as in the whole run)
+        if args.sequence is not None:
+            raise InputError("--shard splits a prompt file's lines; a --sequence is one motion")
+        args.all_lines = lines
+        args.line_indices = shard_lines(len(lines), inputs.check_shard(args.shard))
     variants = inputs.int_in_range(args.variants, "--variants", 1, 64)
     if args.best is not None:
         inputs.int_in_range(args.best, "--best", 1, variants)
-    inputs.check_seed(args.seed, len(lines) * variants, "--seed")
+    inputs.check_seed(args.seed, len(lines) * variants, "--seed")  # the whole run's seeds
     if args.steps is not None:
         inputs.check_steps(args.steps, "--steps")
     args.guidance = inputs.check_guidance(args.guidance, "--guidance")  # 0: the model's default (None)
@@ -136,10 +150,12 @@ def _checked_args(args) -> tuple[list[PromptLine], list[float], object]:
     if constraints:
         for s in seconds:
             constraints.check_frames(int(round(s * limits.fps)))
+    lines, seconds = [lines[i] for i in args.line_indices], [seconds[i] for i in args.line_indices]  # every line
     rows = 1 if args.sequence is not None else len(lines) * (args.best or variants)
     outputs = {"--out": args.out}
     if args.bvh is not None:
-        outputs.update({f"--bvh ({p.name})": p for p in bvh_paths(args.bvh, rows)})
+        args.bvh_names = _bvh_names(args, rows)
+        outputs.update({f"--bvh ({p.name})": p for p in args.bvh_names})
     inputs.check_outputs(outputs, {"--prompts": args.prompts, "--keys": args.keys, "--path": args.path,
                                    "--sequence": args.sequence},
                          overwrite=args.overwrite)
@@ -151,7 +167,8 @@ def _load(args):
     from mld_core.pipeline import MLDPipeline
 
     try:
-        return MLDPipeline.from_pretrained(args.model, precision=args.precision, draft_precision=args.draft_precision)
+        return MLDPipeline.from_pretrained(args.model, precision=args.precision, draft_precision=args.draft_precision,
+                                           device=args.device)
     except CheckpointError as exc:
         raise InputError(str(exc)) from None
     except ImportError as exc:
@@ -215,8 +232,9 @@ def _run(args, take_report) -> int:
                                               warn=lambda line: print(line, file=sys.stderr))
     if args.unconditional and cond == "text":
         prompts = [""] * len(prompts)
-    # 3. Generate: line i, variant v uses seed + i * variants + v (the batch's rule with one variant per line).
-    seeds = [args.seed + i * args.variants for i in range(len(lines))]
+    # 3. Generate: line i, variant v uses seed + i * variants + v (the batch's rule with one variant per line); a
+    #    shard's lines keep their indices in the file.
+    seeds = [args.seed + i * args.variants for i in args.line_indices]
     kwargs = dict(seconds=seconds, num_inference_steps=args.steps, guidance_scale=args.guidance, seed=seeds,
                   num_variants=args.variants, rank=args.best is not None, constraints=constraints or None,
                   draft=args.draft, side_redraws=args.side_redraws)
@@ -241,9 +259,11 @@ def _run(args, take_report) -> int:
     if out.badges is not None:
         print(take_report.badge_table(out))
     # 4. Outputs: written beside their targets, then renamed together (all or none).
+    shard, row_lines = _shard_record(args, pipe, len(out.lengths))
     with OutputSet(overwrite=args.overwrite) as outputs:
-        write_npz(args.out, out, take_report.records_for(out, coverages), outputs)
-        bvhs = write_bvhs(args.bvh, out, int(args.fps or out.fps), outputs) if args.bvh is not None else []
+        write_npz(args.out, out, take_report.records_for(out, coverages), outputs, shard, row_lines)
+        bvhs = write_bvhs(args.bvh, out, int(args.fps or out.fps), outputs, args.bvh_names) \
+            if args.bvh is not None else []
     print(f"wrote {args.out}: {len(out.lengths)} motion(s), {int(out.lengths.max())} frames max at {out.fps} fps, "
           f"{out.timings.get('total_s', 0):.2f} s")
     for p in bvhs:
@@ -251,8 +271,40 @@ def _run(args, take_report) -> int:
     return 0
 
 
+def _bvh_names(args, rows: int) -> list[Path]:
+    """Each row's BVH file: for a shard, named by its row in the whole run (so the shards' files never clash and
+    together are the unsharded run's)."""
+    if args.shard is None:
+        return bvh_paths(args.bvh, rows)
+    per_line = rows // len(args.line_indices)
+    whole = [i * per_line + v for i in args.line_indices for v in range(per_line)]
+    return bvh_paths(args.bvh, args.lines_total * per_line, whole)
+
+
+def _shard_record(args, pipe, rows: int) -> tuple[dict | None, list | None]:
+    """(the shard's record, each row's line) for --shard; (None, None) otherwise."""
+    if args.shard is None:
+        return None, None
+    from mld_core import shards
+
+    settings = {"model_id": pipe.model_id, "model": shards.model_fingerprint(args.model),
+                "prompts": shards.lines_fingerprint(args.all_lines), "seconds": args.seconds, "seed": args.seed,
+                "steps": args.steps, "guidance": args.guidance, "variants": args.variants, "best": args.best,
+                "draft": args.draft, "side_redraws": args.side_redraws, "precision": args.precision,
+                "draft_precision": args.draft_precision if args.draft else None, "strict": args.strict,
+                "unconditional": args.unconditional, "action": args.action, "loop": args.loop, "fps": args.fps,
+                "keys": shards.file_fingerprint(args.keys), "path": shards.file_fingerprint(args.path),
+                "bvh": args.bvh is not None}
+    record = shards.shard_record(inputs.check_shard(args.shard), args.lines_total, settings)
+    record["device"] = args.device  # a machine's own choice: its takes are the same up to float rounding
+    if args.bvh is not None:
+        record["bvh"] = [str(p) for p in args.bvh_names]
+    per_line = rows // len(args.line_indices)
+    return record, [i for i in args.line_indices for _ in range(per_line)]
+
+
 def register(groups) -> None:
-    from mld_core.cli import PRECISION_CHOICES, PRECISION_HELP
+    from mld_core.cli import DEVICE_HELP, PRECISION_CHOICES, PRECISION_HELP
 
     p = groups["root"].add_parser("generate", help="generate motion from text (or an action / nothing)")
     p.add_argument("prompt", nargs="?", default=None, help="what the motion should be")
@@ -290,8 +342,13 @@ def register(groups) -> None:
     p.add_argument("--bvh", type=Path, default=None, help="also write BVH (one file per motion)")
     p.add_argument("--fps", type=int, default=None, help="BVH frame rate (default 20)")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    p.add_argument("--shard", default=None, metavar="I/N",
+                   help="make only shard I of N (from 0) of a prompt file: lines I, I + N, ... with the seeds of the "
+                        "whole run; `python -m mld_core merge` joins the shards (docs/training.md)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     p.add_argument("--precision", choices=PRECISION_CHOICES, default="fp32", help=PRECISION_HELP)
+    p.add_argument("--device", default="cpu", help=f"where the model runs: {DEVICE_HELP}; a take is the same on "
+                   "every device up to float rounding (its noise is drawn on the CPU)")
     p.add_argument("--draft-precision", choices=("auto", "fp32", "bf16"), default="auto",
                    help="the Draft's precision: auto (default) is bf16 on CPUs with native bfloat16 (AVX512-BF16, AMX), "
                         "fp32 elsewhere; fp32 gives the same Draft take on every CPU (docs/draft.md)")

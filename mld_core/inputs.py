@@ -488,3 +488,87 @@ def _file_ancestor(path: Path) -> Path | None:
         if parent.exists():
             return None if parent.is_dir() else parent
     return None
+
+
+# -- where the work runs: devices, torchrun's processes, shards ------------------------------------------------------
+DEVICES = ("cpu", "cuda", "mps", "auto")
+MAX_SHARDS = 100_000
+
+
+def check_device(device, what: str = "--device") -> str:
+    """``device`` (cpu, cuda, mps or auto) as the device torch will use: auto is CUDA, then MPS, then the CPU; a
+    device this machine's torch cannot use is refused with what to do instead."""
+    import torch
+
+    name = str(device if device is not None else "cpu").strip().lower()
+    if name not in DEVICES:
+        raise InputError(f"{what} {device!r} is not a device: use cpu, cuda, mps or auto")
+    mps = getattr(torch.backends, "mps", None)
+    has_mps = mps is not None and mps.is_available()
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "mps" if has_mps else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        why = (f"this torch ({torch.__version__}) is built without CUDA" if torch.version.cuda is None
+               else "no CUDA GPU is visible (check the driver and CUDA_VISIBLE_DEVICES)")
+        raise InputError(f"{what} cuda: {why}; use {what} cpu, or auto to take a GPU where there is one")
+    if name == "mps" and not has_mps:
+        raise InputError(f"{what} mps: Metal (MPS) is not available on this machine; use {what} cpu or auto")
+    return name
+
+
+@dataclass(frozen=True)
+class World:
+    """This process's place among torchrun's: rank (0 .. size - 1) across all machines, local_rank on this one."""
+
+    rank: int = 0
+    size: int = 1
+    local_rank: int = 0
+
+
+def check_world(env, device: str = "cpu") -> World:
+    """torchrun's RANK, WORLD_SIZE and LOCAL_RANK (``env``: a mapping such as os.environ) checked; no WORLD_SIZE is
+    one process. Several processes need torchrun's rendezvous (MASTER_ADDR, MASTER_PORT), a CPU or CUDA device (gloo
+    or NCCL; MPS has no collective backend) and, on CUDA, a GPU per process of the machine."""
+    if env.get("WORLD_SIZE") in (None, ""):
+        return World()
+    values = {}
+    for name in ("WORLD_SIZE", "RANK", "LOCAL_RANK"):
+        text = str(env.get(name, "")).strip()
+        if not text.isdigit():
+            raise InputError(f"{name}={env.get(name, '')!r} is not a whole number: start several processes with "
+                             "torchrun --nproc_per_node N (it sets RANK, WORLD_SIZE and LOCAL_RANK)")
+        values[name] = int(text)
+    size, rank, local = values["WORLD_SIZE"], values["RANK"], values["LOCAL_RANK"]
+    if not 1 <= size <= MAX_SHARDS:
+        raise InputError(f"WORLD_SIZE={size} is not a number of processes (1 to {MAX_SHARDS})")
+    if rank >= size or local > rank:
+        raise InputError(f"RANK={rank}, LOCAL_RANK={local} do not fit WORLD_SIZE={size}: start the run with torchrun")
+    if size > 1:
+        missing = [name for name in ("MASTER_ADDR", "MASTER_PORT") if not env.get(name)]
+        if missing:
+            raise InputError(f"WORLD_SIZE={size} but {' and '.join(missing)} not set: start the run with torchrun")
+        if device == "mps":
+            raise InputError("--device mps runs in one process (MPS has no collective backend): train on cpu or "
+                             "cuda under torchrun")
+        if device == "cuda":
+            import torch
+
+            if local >= torch.cuda.device_count():
+                raise InputError(f"LOCAL_RANK={local} but this machine has {torch.cuda.device_count()} CUDA GPU(s): "
+                                 "start at most one process per GPU (torchrun --nproc_per_node)")
+    return World(rank, size, local)
+
+
+def check_shard(shard, what: str = "--shard") -> tuple[int, int]:
+    """``I/N`` (shard I of N, counted from 0) as (I, N)."""
+    text = str(shard).strip()
+    match = re.fullmatch(r"(\d+)\s*/\s*(\d+)", text)
+    if match is None:
+        raise InputError(f"{what} {shard!r} is not I/N: give the shard's index (from 0) and the number of shards, "
+                         "e.g. 0/4")
+    index, count = int(match.group(1)), int(match.group(2))
+    if not 1 <= count <= MAX_SHARDS:
+        raise InputError(f"{what} {text}: the number of shards must be 1 to {MAX_SHARDS}")
+    if index >= count:
+        raise InputError(f"{what} {text}: the index must be 0 to {count - 1} (shards are counted from 0)")
+    return index, count

@@ -192,7 +192,7 @@ class MLDPipeline:
                     draft_text_encoder.pack_for_cpu_inference()
             d = config.draft
             self.draft_scheduler = LCMScheduler(config.scheduler, d.original_steps, d.timestep_scaling, d.sigma_data,
-                                                d.fresh_noise)
+                                                d.fresh_noise).to(self.device)
         self._text_cache = text_condition.TextCache()  # prompt -> its TextEmbedding (one row, its own tokens)
         self._draft_text_cache = text_condition.TextCache()  # the same for the Draft's text encoder
         self.coverage_index = None  # mld_core.condition.coverage.CoverageIndex, from coverage_index.npz

@@ -47,6 +47,13 @@ class _Schedule:
         self.alphas_cumprod = torch.cumprod(1.0 - betas, dim=0)  # alpha_bar_t, (N,)
         self.timesteps = torch.arange(self.config.num_train_timesteps - 1, -1, -1)
 
+    def to(self, device: torch.device | str):
+        """The schedule's tables on ``device`` (a GPU's samples are stepped there); returns self."""
+        for name, value in list(vars(self).items()):
+            if isinstance(value, torch.Tensor):
+                setattr(self, name, value.to(device))
+        return self
+
     def add_noise(self, original: torch.Tensor, noise: torch.Tensor, timesteps: torch.Tensor) -> torch.Tensor:
         """x_t = sqrt(alpha_bar_t) x_0 + sqrt(1 - alpha_bar_t) eps, one timestep per batch item."""
         alpha_bar = self.alphas_cumprod.to(original.device)[timesteps].to(original.dtype)
@@ -177,7 +184,7 @@ class LCMScheduler(_Schedule):
 
     def denoised(self, model_output: torch.Tensor, timesteps: torch.Tensor, sample: torch.Tensor) -> torch.Tensor:
         """f(x_t, t) for a batch: model_output and sample (B, ...), timesteps (B,) or a scalar."""
-        timesteps = torch.as_tensor(timesteps).reshape(-1)
+        timesteps = torch.as_tensor(timesteps, device=self.alphas_cumprod.device).reshape(-1)
         shape = (-1,) + (1,) * (sample.dim() - 1)
         a_t = self.alphas_cumprod[timesteps].reshape(shape).to(sample.dtype)  # (B, 1, ...)
         pred_x0 = (sample - (1 - a_t).sqrt() * model_output) / a_t.sqrt()
@@ -217,9 +224,12 @@ class LCMScheduler(_Schedule):
         """A DDIM (eta 0) step from x_t to x_prev, one pair of timesteps per row or one for all; a negative
         ``prev_timesteps`` steps to the clean sample (alpha_bar 1)."""
         shape = (-1,) + (1,) * (sample.dim() - 1)
-        t, prev = torch.as_tensor(timesteps).reshape(-1), torch.as_tensor(prev_timesteps).reshape(-1)
+        device = self.alphas_cumprod.device
+        t = torch.as_tensor(timesteps, device=device).reshape(-1)
+        prev = torch.as_tensor(prev_timesteps, device=device).reshape(-1)
         a_t = self.alphas_cumprod[t].reshape(shape)
-        a_prev = torch.where(prev >= 0, self.alphas_cumprod[prev.clamp(min=0)], torch.ones(())).reshape(shape)
+        a_prev = torch.where(prev >= 0, self.alphas_cumprod[prev.clamp(min=0)],
+                             torch.ones((), device=device)).reshape(shape)
         pred_x0 = (sample - (1 - a_t).sqrt() * model_output) / a_t.sqrt()
         return a_prev.sqrt() * pred_x0 + (1 - a_prev).sqrt() * model_output
 

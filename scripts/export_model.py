@@ -41,7 +41,7 @@ from mld_core.training.draft import DRAFT_WEIGHTS, install_draft  # noqa: E402
 
 CARD = """# {model_id}
 
-Motion Latent Diffusion (Chen et al., CVPR 2023) text-to-motion model, trained from scratch on two CPU cores.
+Motion Latent Diffusion (Chen et al., CVPR 2023) text-to-motion model, trained from scratch on {hardware}.
 
 | | |
 |---|---|
@@ -168,6 +168,7 @@ def main(argv=None) -> int:
                     "(when the run has none)")
     ap.add_argument("--vae-decoder", type=Path, default=None, help="a VAE run whose decoder side replaces the run's "
                     "(its encoder must be the run's)")
+    ap.add_argument("--hardware", default="two CPU cores", help="what the card says it was trained on")
     args = ap.parse_args(argv)
     try:
         config = load_config(args.run)
@@ -210,7 +211,7 @@ def main(argv=None) -> int:
                        cond=config.denoiser.cond, length=config.denoiser.length_conditioning,
                        steps=config.num_inference_steps, guidance=config.guidance_scale,
                        min_s=config.min_frames / config.fps, max_s=config.max_frames / config.fps, size_mb=size,
-                       training=training, metrics=metrics)
+                       training=training, metrics=metrics, hardware=args.hardware)
     made = make_parents(args.out.parent)
     tmp = Path(tempfile.mkdtemp(dir=args.out.parent, prefix=f".{args.out.name}."))
     try:

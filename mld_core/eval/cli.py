@@ -6,9 +6,11 @@ import argparse
 import os
 from pathlib import Path
 
+from mld_core.inputs import check_world
+
 
 def register(groups) -> None:
-    from mld_core.cli import PRECISION_CHOICES, PRECISION_HELP
+    from mld_core.cli import DEVICE_HELP, PRECISION_CHOICES, PRECISION_HELP
 
     p = groups["train"].add_parser(
         "evaluator", help="train the evaluator (motion + text encoders, action classifier) used by `evaluate`",
@@ -30,6 +32,10 @@ def register(groups) -> None:
     p.add_argument("--text-encoder", default=None, metavar="JSON",
                    help='frozen sentence encoder spec, e.g. \'{"kind": "minilm"}\' (the default)')
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--device", default="cpu",
+                   help="cpu (default), cuda, mps or auto (CUDA, then MPS, then the CPU); float32 everywhere. Under "
+                        "torchrun each process embeds its rows of every batch: --batch-size is the total over all "
+                        "processes")
     p.set_defaults(func=run_train)
 
     e = groups["root"].add_parser(
@@ -64,6 +70,7 @@ def register(groups) -> None:
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     e.add_argument("--precision", choices=PRECISION_CHOICES, default="fp32", help=PRECISION_HELP)
+    e.add_argument("--device", default="cpu", help=f"where the model generates: {DEVICE_HELP}")
     e.add_argument("--name", default=None, help="row name for the model (default: its model_id)")
     e.add_argument("--json", default=None, help="write the result here (default: no file)")
     e.add_argument("--no-progress", action="store_true")
@@ -112,8 +119,12 @@ def run_train(args: argparse.Namespace) -> int:
 
     _check_folder(args.data, "train")
     _check_train_flags(args)
+    world = check_world(os.environ, args.device)  # torchrun's environment, before anything is written
+    if args.batch_size < world.size:
+        raise _usage(f"--batch-size {args.batch_size} must be at least the {world.size} processes")
     cfg = EvaluatorTrainConfig(data=args.data, out=args.out, seed=args.seed, threads=args.threads, epochs=args.epochs,
-                               minutes=args.minutes or None, batch_size=args.batch_size, lr=args.lr)
+                               minutes=args.minutes or None, batch_size=args.batch_size, lr=args.lr,
+                               device=args.device)
     model_cfg = EvaluatorConfig()
     if args.hidden:
         model_cfg.hidden = args.hidden
@@ -134,7 +145,11 @@ def run_train(args: argparse.Namespace) -> int:
         out = train_evaluator(cfg, model_cfg, resume=args.resume, progress=not args.no_progress)
     except (FileExistsError, FileNotFoundError, ValueError, TextEncoderError) as exc:
         raise _usage(str(exc)) from None
-    print(f"wrote {out}")
+    from mld_core.training.distributed import finish, is_main_process
+
+    finish()
+    if is_main_process():
+        print(f"wrote {out}")
     return 0
 
 
@@ -170,7 +185,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     from mld_core.pipeline import MLDPipeline
 
     try:
-        pipe = MLDPipeline.from_pretrained(args.model, precision=args.precision)
+        pipe = MLDPipeline.from_pretrained(args.model, precision=args.precision, device=args.device)
     except (CheckpointError, FileNotFoundError) as exc:
         raise _usage(f"cannot load the model: {exc}") from None
     if args.draft and pipe.draft_denoiser is None:

@@ -259,13 +259,14 @@ class PipelineGenerator:
             x = np.zeros((len(chunk), max(lens), mean.shape[0]), np.float32)
             for i, m in enumerate(chunk):
                 x[i, : len(m)] = (m - mean) / std
-            lengths = torch.tensor(lens)
+            device = next(vae.parameters()).device
+            lengths = torch.tensor(lens, device=device)
             with torch.inference_mode():
-                mu, logvar = vae.encode(torch.from_numpy(x), lengths)
+                mu, logvar = vae.encode(torch.from_numpy(x).to(device), lengths)
                 z = mu
-                if self.settings.vae_sample:
-                    z = mu + torch.randn(mu.shape, generator=gen) * (0.5 * logvar).exp()
-                rec = vae.decode(z, lengths).float().numpy()  # (B, T, D) normalised
+                if self.settings.vae_sample:  # the draw on the CPU: the same numbers on every device
+                    z = mu + torch.randn(mu.shape, generator=gen).to(device) * (0.5 * logvar).exp()
+                rec = vae.decode(z, lengths).float().cpu().numpy()  # (B, T, D) normalised
             return [(rec[i, :n] * std + mean).astype(np.float32) for i, n in enumerate(lens)]
 
         return self._batched(len(motions), call, "vae")

@@ -205,10 +205,11 @@ class Evaluator(nn.Module):
         logits = np.zeros((n, max(self.config.num_actions, 1)), np.float32)
         try:
             for idx, x, lens in self._batches(features, lengths, batch_size):
-                e, lg = self.motion_forward(self.normalize(x), lens)
-                emb[idx] = e.numpy()
+                device = self.mean.device  # the evaluator's (training may keep it on a GPU)
+                e, lg = self.motion_forward(self.normalize(x.to(device)), lens.to(device))
+                emb[idx] = e.float().cpu().numpy()
                 if lg is not None:
-                    logits[idx] = lg.numpy()
+                    logits[idx] = lg.float().cpu().numpy()
         finally:
             self.train(was_training)
         return emb, (logits if self.config.num_actions else None)
@@ -228,10 +229,10 @@ class Evaluator(nn.Module):
         was_training = self.training
         self.eval()
         try:
-            out = self.text_forward(torch.as_tensor(np.asarray(pooled, np.float32)))
+            out = self.text_forward(torch.as_tensor(np.asarray(pooled, np.float32)).to(self.mean.device))
         finally:
             self.train(was_training)
-        return out.numpy()
+        return out.float().cpu().numpy()
 
     @property
     def text_encoder(self):
@@ -261,7 +262,7 @@ class Evaluator(nn.Module):
         tensors = {}
         for name, value in self.state_dict().items():
             keep_fp32 = name in ("mean", "std")
-            tensors[name] = value.detach().to(torch.float32 if keep_fp32 else torch.float16).contiguous()
+            tensors[name] = value.detach().to(torch.float32 if keep_fp32 else torch.float16).cpu().contiguous()
         _atomic_write(directory / WEIGHTS_NAME, lambda p: save_file(tensors, str(p), metadata={"format": "pt"}))
         text = json.dumps(self.config.to_dict(), indent=2) + "\n"
         _atomic_write(directory / CONFIG_NAME, lambda p: Path(p).write_text(text))

@@ -5,6 +5,10 @@ caption text count as positives of each other, not negatives) plus cross-entropy
 classifier. The sentence vectors of every caption are computed once by the frozen text encoder and
 cached in the run folder. The best epoch on the validation split (R-precision top-3 + action
 accuracy) is kept. Resumable: the run folder holds ``train_state.pt`` after every epoch.
+
+On a GPU (``device``) and under torchrun: ``batch_size`` is the whole batch; each process embeds its rows of it
+and the loss is computed on every process over the whole batch's embeddings (gathered with their gradients), so
+every pair still meets every other pair of its batch as a negative (mld_core.training.distributed).
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ class EvaluatorTrainConfig:
     min_frames: int = 20
     val_fraction: float = 0.05  # carved from train when the folder has no val split
     bucket: bool = True  # batches of similar lengths (less padding; negatives of similar duration)
+    device: str = "cpu"  # cpu, cuda, mps or auto (where this sitting trains; float32 everywhere)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -118,19 +123,54 @@ class TextVectors:
 
 
 def _collate(pairs: list[Pair], model: Evaluator, actions: dict[str, int], text_vectors: TextVectors):
+    """(normalised features (B, T, D), lengths, sentence vectors, caption group ids, action ids), on the model's
+    device."""
+    device = model.mean.device
     lens = [p.length for p in pairs]
     x = np.zeros((len(pairs), max(lens), model.config.feature_dim), np.float32)
     for i, p in enumerate(pairs):
         x[i, : p.length] = p.features
     texts = [p.text for p in pairs]
+    return (model.normalize(torch.from_numpy(x).to(device)), torch.tensor(lens, device=device),
+            torch.from_numpy(text_vectors(texts)).to(device), *_pair_ids(pairs, actions, device))
+
+
+def _pair_ids(pairs: list[Pair], actions: dict[str, int], device) -> tuple[torch.Tensor, torch.Tensor]:
+    """(caption group id, action id or -100) of each pair: pairs with one caption text share a group."""
+    texts = [p.text for p in pairs]
     groups = {t: i for i, t in enumerate(dict.fromkeys(texts))}
-    return (
-        model.normalize(torch.from_numpy(x)),
-        torch.tensor(lens),
-        torch.from_numpy(text_vectors(texts)),
-        torch.tensor([groups[t] for t in texts]),
-        torch.tensor([actions.get(p.action, -100) if p.action is not None else -100 for p in pairs]),
-    )
+    return (torch.tensor([groups[t] for t in texts], device=device),
+            torch.tensor([actions.get(p.action, -100) if p.action is not None else -100 for p in pairs], device=device))
+
+
+class _EvaluatorLoss(torch.nn.Module):
+    """The batch's loss as a module's forward, so DistributedDataParallel can wrap it: contrastive + action terms
+    over the whole batch, whose rows ``rows`` of ``total`` this process embeds (all of them in one process)."""
+
+    def __init__(self, model: Evaluator, action_weight: float, size: int):
+        super().__init__()
+        self.model, self.action_weight, self.size = model, action_weight, size
+
+    def forward(self, x, lens, tvec, groups, labels, total: int):
+        m_emb, logits = self.model.motion_forward(x, lens)
+        t_emb = self.model.text_forward(tvec)
+        if self.size > 1:
+            m_emb, t_emb = _whole_batch(m_emb, total, self.size), _whole_batch(t_emb, total, self.size)
+            logits = _whole_batch(logits, total, self.size) if logits is not None else None
+        loss = contrastive_loss(t_emb, m_emb, groups, self.model.config.temperature)
+        if logits is not None and (labels >= 0).any():
+            loss = loss + self.action_weight * F.cross_entropy(logits, labels, ignore_index=-100)
+        return loss
+
+
+def _whole_batch(rows: torch.Tensor, total: int, size: int) -> torch.Tensor:
+    """Every process's rows (process r holds rows r, r + N, ...) in the batch's order, with their gradients."""
+    from torch.distributed.nn.functional import all_gather
+
+    per = -(-total // size)
+    padded = torch.cat([rows, rows.new_zeros(per - len(rows), *rows.shape[1:])])  # (per, ...)
+    pieces = torch.stack(all_gather(padded))  # (N, per, ...)
+    return pieces.transpose(0, 1).reshape(per * size, *rows.shape[1:])[:total]
 
 
 def _batches(pairs: list[Pair], batch_size: int, rng: np.random.Generator, bucket: bool) -> list[np.ndarray]:
@@ -232,22 +272,30 @@ def train_evaluator(cfg: EvaluatorTrainConfig, model_config: EvaluatorConfig | N
     """
     from tqdm import tqdm
 
+    from mld_core.training import distributed
+
     root, out = Path(cfg.data), Path(cfg.out)
     state_path = out / STATE_NAME
-    if resume and not state_path.is_file():
-        raise FileNotFoundError(f"nothing to resume: {state_path} does not exist")
-    if not resume and (state_path.is_file() or (out / "model.safetensors").is_file()):
-        raise FileExistsError(f"{out} already holds an evaluator run; pass --resume or choose another --out")
-    out.mkdir(parents=True, exist_ok=True)
+    rt = distributed.runtime(cfg.device, fp32=True, batch=(cfg.batch_size, "batch_size"))
+
+    def prepare():
+        if resume and not state_path.is_file():
+            raise FileNotFoundError(f"nothing to resume: {state_path} does not exist")
+        if not resume and (state_path.is_file() or (out / "model.safetensors").is_file()):
+            raise FileExistsError(f"{out} already holds an evaluator run; pass --resume or choose another --out")
+        out.mkdir(parents=True, exist_ok=True)
+
+    rt.on_main(prepare)
     threads_before = torch.get_num_threads()
     torch.set_num_threads(max(1, cfg.threads))
     try:
-        return _train(cfg, model_config, root, out, resume, text_encoder, data, progress, log, tqdm)
+        return _train(cfg, model_config, root, out, resume, text_encoder, data, progress and rt.is_main,
+                      log if rt.is_main else (lambda *_: None), tqdm, rt)
     finally:
         torch.set_num_threads(threads_before)
 
 
-def _train(cfg, model_config, root, out, resume, text_encoder, data, progress, log, tqdm) -> Path:
+def _train(cfg, model_config, root, out, resume, text_encoder, data, progress, log, tqdm, rt) -> Path:
     started = time.monotonic()
     if data is None:
         train, val, test, mean, std = _load(root)
@@ -266,7 +314,7 @@ def _train(cfg, model_config, root, out, resume, text_encoder, data, progress, l
         cfg_saved = json.loads(state["train_config"])
         # the run's settings, except where and how long this invocation runs
         cfg = EvaluatorTrainConfig(**{**cfg_saved, "data": cfg.data, "out": cfg.out, "minutes": cfg.minutes,
-                                      "epochs": cfg.epochs, "threads": cfg.threads})
+                                      "epochs": cfg.epochs, "threads": cfg.threads, "device": cfg.device})
     else:
         model_config = model_config or EvaluatorConfig()
         model_config = EvaluatorConfig.from_dict({
@@ -282,12 +330,13 @@ def _train(cfg, model_config, root, out, resume, text_encoder, data, progress, l
 
         text_encoder = load_text_encoder(dict(model_config.text_encoder))
     texts = all_caption_texts(train + val + test, min_frames=cfg.min_frames, fps=model_config.fps)
+    rt.on_main(lambda: TextVectors.build(texts, text_encoder, out / TEXT_CACHE, progress=progress))  # cached by rank 0
     vectors = TextVectors.build(texts, text_encoder, out / TEXT_CACHE, progress=progress)
     if vectors.vectors.shape[1] != model_config.text_dim:
         model_config = EvaluatorConfig.from_dict({**model_config.to_dict(), "text_dim": int(vectors.vectors.shape[1])})
 
     torch.manual_seed(cfg.seed)
-    model = Evaluator(model_config, mean, std)
+    model = Evaluator(model_config, mean, std).to(rt.device)
     model._text_encoder = text_encoder
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     epoch, step, best, history = 0, 0, -1.0, []
@@ -308,15 +357,17 @@ def _train(cfg, model_config, root, out, resume, text_encoder, data, progress, l
         raise ValueError(f"{root} has fewer than 2 usable training pairs (captions >= {cfg.min_frames} frames)")
     per_epoch = int(np.ceil(n_train / cfg.batch_size))
     log(f"evaluator: {n_train} train pairs/epoch, {len(val_pairs)} val pairs, {len(names)} actions, "
-        f"{sum(p.numel() for p in model.parameters()) / 1e6:.2f} M parameters, {torch.get_num_threads()} thread(s)")
+        f"{sum(p.numel() for p in model.parameters()) / 1e6:.2f} M parameters, {torch.get_num_threads()} thread(s), "
+        f"{rt.device.type}" + (f", {rt.size} processes" if rt.size > 1 else ""))
+    wrapped = rt.wrap(_EvaluatorLoss(model, cfg.action_weight, rt.size))
 
     bar = tqdm(total=cfg.epochs * per_epoch, initial=min(step, cfg.epochs * per_epoch), desc="evaluator",
                unit="step", disable=not progress)
     stopped_early = False
     invocation_start = time.monotonic()
     while epoch < cfg.epochs:
-        if cfg.minutes is not None and (time.monotonic() - invocation_start) / 60 >= cfg.minutes:
-            stopped_early = True
+        if rt.decide(cfg.minutes is not None and (time.monotonic() - invocation_start) / 60 >= cfg.minutes):
+            stopped_early = True  # rank 0's clock decides for every process
             break
         rng = np.random.default_rng([cfg.seed, epoch])
         pairs = draw_pairs(train, rng, min_frames=cfg.min_frames, max_frames=model_config.max_frames,
@@ -325,26 +376,22 @@ def _train(cfg, model_config, root, out, resume, text_encoder, data, progress, l
         losses = []
         for batch_idx in _batches(pairs, cfg.batch_size, rng, cfg.bucket):
             batch = [pairs[i] for i in batch_idx]
-            if len(batch) < 2:
+            if len(batch) < max(2, rt.size):  # every process needs a row
                 continue
-            x, lens, tvec, groups, labels = _collate(batch, model, actions, vectors)
+            groups, labels = _pair_ids(batch, actions, rt.device)  # the whole batch's
+            x, lens, tvec, _, _ = _collate([batch[i] for i in rt.rows(len(batch))], model, actions, vectors)
             lr = cfg.lr * min(1.0, (step + 1) / max(1, cfg.warmup_steps))
             for g in opt.param_groups:
                 g["lr"] = lr
-            m_emb, logits = model.motion_forward(x, lens)
-            t_emb = model.text_forward(tvec)
-            loss = contrastive_loss(t_emb, m_emb, groups, model_config.temperature)
-            if logits is not None and (labels >= 0).any():
-                loss = loss + cfg.action_weight * F.cross_entropy(logits, labels, ignore_index=-100)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-            opt.step()
+            loss = wrapped(x, lens, tvec, groups, labels, len(batch))
+            rt.step(loss, opt, list(model.parameters()))
             step += 1
             losses.append(float(loss.detach()))
             bar.update(1)
             bar.set_postfix(epoch=epoch + 1, loss=f"{np.mean(losses[-20:]):.3f}")
         epoch += 1
+        if not rt.is_main:  # rank 0 alone scores and writes
+            continue
         scores = score_pairs(model, val_pairs, vectors, actions)
         scores.update(epoch=epoch, loss=float(np.mean(losses)) if losses else float("nan"),
                       minutes=round((time.monotonic() - started) / 60, 2))
@@ -358,6 +405,9 @@ def _train(cfg, model_config, root, out, resume, text_encoder, data, progress, l
                   + (" *" if improved else ""))
         _save_state(out, model, opt, epoch, step, best, history, cfg, model_config)
     bar.close()
+    if not rt.is_main:
+        rt.barrier()
+        return out
     if stopped_early:
         log(f"stopped after {cfg.minutes} minutes at epoch {epoch}; continue with --resume")
 
@@ -378,11 +428,14 @@ def _train(cfg, model_config, root, out, resume, text_encoder, data, progress, l
                                                                           indent=2) + "\n"))
     for split, s in report.items():
         log(f"{split}: " + ", ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in s.items()))
+    rt.barrier()
     return out
 
 
 def _save_state(out, model, opt, epoch, step, best, history, cfg, model_config) -> None:
-    state = {"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch, "step": step,
+    from mld_core.training.common import on_cpu
+
+    state = {"model": on_cpu(model.state_dict()), "optimizer": on_cpu(opt.state_dict()), "epoch": epoch, "step": step,
              "best": best, "history": json.dumps(history), "torch_rng": torch.get_rng_state(),
              "train_config": json.dumps(cfg.to_dict()), "model_config": json.dumps(model_config.to_dict())}
     _atomic_write(out / STATE_NAME, lambda p: torch.save(state, p))

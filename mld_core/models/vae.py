@@ -91,17 +91,21 @@ class MotionVAE(nn.Module):
                                      fixed_queries=T))  # (B, T, F): the queries depend on T alone
         return out.masked_fill(mask[..., None], 0.0)
 
-    def forward(self, x: torch.Tensor, lengths: torch.Tensor, sample: bool = True):
+    def forward(self, x: torch.Tensor, lengths: torch.Tensor, sample: bool = True, noise: torch.Tensor | None = None):
+        """``noise`` (B, n, d): the sampled z's standard normal draw (default: drawn here)."""
         mu, logvar = self.encode(x, lengths)
-        z = mu + torch.randn_like(mu) * (0.5 * logvar).exp() if sample else mu
+        if not sample:
+            return self.decode(mu, lengths, max_len=x.shape[1]), mu, logvar
+        noise = torch.randn_like(mu) if noise is None else noise.to(mu)
+        z = mu + noise * (0.5 * logvar).exp()
         return self.decode(z, lengths, max_len=x.shape[1]), mu, logvar
 
     def loss(self, x: torch.Tensor, lengths: torch.Tensor, return_recon: bool = False,
-             feature_weights: torch.Tensor | None = None):
+             feature_weights: torch.Tensor | None = None, noise: torch.Tensor | None = None):
         """MSE on valid frames of normalised features + kl_weight * KL(q(z|x) || N(0, I)): (loss, parts), and the
         reconstruction (B, T, F) too with ``return_recon``. ``feature_weights`` (F,) weight each feature's squared
-        error (the mean over features stays the reduction)."""
-        recon, mu, logvar = self(x, lengths)
+        error (the mean over features stays the reduction). ``noise``: as in forward."""
+        recon, mu, logvar = self(x, lengths, noise=noise)
         recon, mu, logvar = recon.float(), mu.float(), logvar.float()  # the loss in fp32 under autocast too
         valid = ~padding_mask(lengths, x.shape[1])  # (B, T)
         err = (recon - x) ** 2  # (B, T, F)

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from mld_core.cli import UsageError
-from mld_core.inputs import (check_output_folder, int_in_range, number_in_range, parse_json, read_json_file,
-                             true_or_false)
+from mld_core.inputs import (check_output_folder, check_world, int_in_range, number_in_range, parse_json,
+                             read_json_file, true_or_false)
 
 
 def _run_options(p) -> None:
@@ -17,6 +18,19 @@ def _run_options(p) -> None:
     p.add_argument("--steps", type=int, default=None, help="stop after this many optimiser steps")
     p.add_argument("--minutes", type=float, default=None, help="stop after this much wall time")
     p.add_argument("--lr", type=float, default=None)
+    _device_options(p)
+
+
+def _device_options(p) -> None:
+    """Where the stage trains: the device and, on CUDA, the precision (mld_core.training.distributed)."""
+    p.add_argument("--device", default="cpu",
+                   help="cpu (default), cuda, mps or auto (CUDA, then MPS, then the CPU). Under torchrun "
+                        "(torchrun --nproc_per_node N -m mld_core train ...) each process trains on its own rows of "
+                        "every batch: the config's batch sizes (batch_size, frames_per_batch) are totals over all "
+                        "processes, the learning rate is the one of that total batch")
+    p.add_argument("--fp32", action="store_true",
+                   help="on CUDA, train in float32 (default there: mixed precision, bfloat16 where the GPU has it, "
+                        "else float16 with a gradient scaler)")
 
 
 def _common(p) -> None:
@@ -55,6 +69,11 @@ def _check_data(path: str) -> None:
     ids = [line.strip() for line in (root / "train.txt").read_text(errors="replace").splitlines() if line.strip()]
     if not any((root / "new_joint_vecs" / f"{i}.npy").is_file() for i in ids):
         raise UsageError(f"{root}: the training split (train.txt) names no clip found in new_joint_vecs/")
+
+
+def _where(args) -> dict:
+    """--device (checked and resolved by mld_core.cli) and --fp32 as config settings."""
+    return {"device": args.device, "fp32": args.fp32}
 
 
 def _init_dir(args) -> str | None:
@@ -106,15 +125,17 @@ def _overrides(args, config_class) -> dict:
     return data
 
 
-def _run(train, make_config, out: str, resume: bool) -> int:
+def _run(train, make_config, out: str, resume: bool, device: str = "cpu") -> int:
     """Build the stage config and train; a run that fails before its first checkpoint leaves no folder behind."""
     import shutil
 
     from mld_core.checkpoint import CheckpointError
+    from mld_core.training.distributed import finish, is_main_process
 
     out_dir = Path(out)
+    check_world(os.environ, device)  # torchrun's environment, before anything is written
     check_output_folder(out_dir, "--out")
-    new_folder = not out_dir.exists()
+    new_folder = not out_dir.exists() and is_main_process()  # only rank 0 makes (and may remove) the run folder
     try:
         cfg = make_config()
     except (TypeError, ValueError) as exc:
@@ -129,7 +150,9 @@ def _run(train, make_config, out: str, resume: bool) -> int:
         if new_folder and out_dir.is_dir() and not (out_dir / "train_state.pt").exists():
             shutil.rmtree(out_dir, ignore_errors=True)
         raise
-    print(f"wrote {out}")
+    finish()
+    if is_main_process():
+        print(f"wrote {out}")
     return 0
 
 
@@ -139,7 +162,7 @@ def run_vae(args) -> int:
     _check_run_options(args)
     _check_data(args.data)
     over = _overrides(args, VAETrainConfig)
-    return _run(train_vae, lambda: _vae_config(args, over), args.out, args.resume)
+    return _run(train_vae, lambda: _vae_config(args, over), args.out, args.resume, args.device)
 
 
 def _vae_config(args, over: dict):
@@ -155,7 +178,7 @@ def _vae_config(args, over: dict):
         vae.decoder = TransformerConfig(**{**vae.decoder.to_dict(), "layers": layers, "skip": skip})
         vae.latent_tokens = args.latent_tokens or vae.latent_tokens
     cfg = VAETrainConfig(data=args.data, out=str(args.out), seed=args.seed, threads=args.threads, steps=args.steps,
-                         minutes=args.minutes, vae=vae, init=_init_dir(args), **over)
+                         minutes=args.minutes, vae=vae, init=_init_dir(args), **_where(args), **over)
     if args.lr:
         cfg.lr = args.lr
     cfg.bf16 = cfg.bf16 or args.bf16
@@ -168,7 +191,7 @@ def run_denoiser(args) -> int:
     _check_run_options(args)
     _check_data(args.data)
     over = _overrides(args, DenoiserTrainConfig)
-    return _run(train_denoiser, lambda: _denoiser_config(args, over), args.out, args.resume)
+    return _run(train_denoiser, lambda: _denoiser_config(args, over), args.out, args.resume, args.device)
 
 
 def _denoiser_config(args, over: dict):
@@ -182,7 +205,7 @@ def _denoiser_config(args, over: dict):
                                                "skip": not args.no_skip, "cross_attention": args.cross_attention})
     cfg = DenoiserTrainConfig(data=args.data, vae=str(args.vae), out=str(args.out), cond=args.cond, seed=args.seed,
                               threads=args.threads, steps=args.steps, minutes=args.minutes, denoiser=den,
-                              init=_init_dir(args), **over)
+                              init=_init_dir(args), **_where(args), **over)
     if args.lr:
         cfg.lr = args.lr
     cfg.bf16 = cfg.bf16 or args.bf16
@@ -215,10 +238,12 @@ def _run_distillation(args, config_class, train, install, what: str, extra: dict
 
     def make_config():  # every setting is checked here (the config's __post_init__), before any work
         return config_class(data=args.data, teacher=str(teacher), out=str(args.out), seed=args.seed,
-                            threads=args.threads, steps=args.steps, minutes=args.minutes, **over)
+                            threads=args.threads, steps=args.steps, minutes=args.minutes, **_where(args), **over)
 
-    code = _run(train, make_config, args.out, args.resume)
-    if args.install:
+    code = _run(train, make_config, args.out, args.resume, args.device)
+    from mld_core.training.distributed import is_main_process
+
+    if args.install and is_main_process():
         from mld_core.checkpoint import CheckpointError
 
         try:

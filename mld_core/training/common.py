@@ -29,10 +29,21 @@ def setup_torch(seed: int, threads: int | None) -> None:
 
 def save_train_state(run: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer, step: int,
                      extra: dict | None = None) -> None:
-    """Everything --resume needs, as tensors and plain values (loadable with weights_only=True)."""
-    state = {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
-             "torch_rng": torch.get_rng_state(), "extra": json.dumps(extra or {})}
+    """Everything --resume needs, as CPU tensors and plain values (loadable with weights_only=True, on any device)."""
+    state = {"model": on_cpu(getattr(model, "module", model).state_dict()), "optimizer": on_cpu(optimizer.state_dict()),
+             "step": step, "torch_rng": torch.get_rng_state(), "extra": json.dumps(extra or {})}
     atomic_write(Path(run) / STATE_FILE, lambda tmp: torch.save(state, tmp))
+
+
+def on_cpu(value):
+    """A state dict (nested dicts and lists of tensors) with every tensor copied to the CPU."""
+    if isinstance(value, torch.Tensor):
+        return value.detach().cpu()
+    if isinstance(value, dict):
+        return {k: on_cpu(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(on_cpu(v) for v in value)
+    return value
 
 
 def load_train_state(run: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer) -> tuple[int, dict]:
@@ -40,7 +51,7 @@ def load_train_state(run: Path, model: torch.nn.Module, optimizer: torch.optim.O
     if not path.is_file():
         raise FileNotFoundError(f"nothing to resume: {path} does not exist")
     state = torch.load(path, map_location="cpu", weights_only=True)
-    model.load_state_dict(state["model"])
+    getattr(model, "module", model).load_state_dict(state["model"])  # copied onto the model's device
     optimizer.load_state_dict(state["optimizer"])
     torch.set_rng_state(state["torch_rng"])
     return int(state["step"]), json.loads(state["extra"])

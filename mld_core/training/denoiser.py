@@ -5,7 +5,9 @@
 Latents are precomputed once (the encoder means of ``crops_per_clip`` random crops per clip plus the whole clip) and
 cached in the run folder, as are the frozen text encoder's embeddings of every caption. DDPM training with epsilon
 prediction, condition dropout for classifier-free guidance, content-balanced sampling and an EMA of the weights.
-The run folder is a complete model folder (config.json, vae.safetensors, denoiser.safetensors).
+The run folder is a complete model folder (config.json, vae.safetensors, denoiser.safetensors). ``batch_size`` is
+the whole batch, split between torchrun's processes (mld_core.training.distributed); the latents and caption
+embeddings sit on the training device.
 """
 
 from __future__ import annotations
@@ -14,7 +16,6 @@ import copy
 import hashlib
 import json
 import shutil
-import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -30,6 +31,7 @@ from mld_core.data.captions import reworded
 from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import DDPMScheduler
+from mld_core.training import distributed
 from mld_core.training.common import (Budget, balanced_weights, check_resumed_modules, checked_budget,
                                      checked_module_names, load_train_state, lr_factor, save_train_state, set_lr,
                                      setup_torch, trainable_parameters)
@@ -49,7 +51,7 @@ class DenoiserTrainConfig:
     threads: int | None = None
     steps: int | None = None
     minutes: float | None = None
-    batch_size: int = 128
+    batch_size: int = 128  # the whole batch, over all processes (torchrun): each takes its share
     lr: float = 1e-4
     ema_decay: float = 0.999
     decay_start: float = 0.6  # cosine learning-rate decay over the last 40% of the budget (--steps/--minutes)
@@ -64,6 +66,8 @@ class DenoiserTrainConfig:
     reworded_turns: bool = False  # rewordings also say "turns" to a side with other verbs (captions.TURN_VERBS)
     reworded_sides: bool = False  # rewordings also name a side from the body: "to his / her left" (captions.reworded)
     train_modules: list | None = None  # the denoiser's top-level modules to train (e.g. the text-reading ones); None: all
+    device: str = "cpu"  # cpu, cuda, mps or auto (where this sitting trains; any sitting may resume on another)
+    fp32: bool = False  # on CUDA, no mixed precision (default there: bf16 autocast, or fp16 with a gradient scaler)
     denoiser: DenoiserConfig = field(default_factory=DenoiserConfig)
 
     def __post_init__(self):
@@ -121,10 +125,12 @@ def encode_latents(vae: MotionVAE, units: list[Unit], mean, std, crops: int, min
     batch = []
     bar = tqdm(total=len(jobs), desc="encoding latents", unit="crop", dynamic_ncols=True)
 
+    device = next(vae.parameters()).device
+
     def flush():
         x = np.stack([(units[u].features[s:s + L] - mean) / std for u, s, L in batch]).astype(np.float32)
-        mu, _ = vae.encode(torch.from_numpy(x), torch.full((len(batch),), batch[0][2]))
-        mus.append(mu)
+        mu, _ = vae.encode(torch.from_numpy(x).to(device), torch.full((len(batch),), batch[0][2], device=device))
+        mus.append(mu.float().cpu())
         bar.update(len(batch))
         batch.clear()
 
@@ -202,17 +208,36 @@ def _write_coverage_index(out: Path, units: list[Unit], encoder) -> None:
     index.save(out / coverage.INDEX_NAME)
 
 
+class _DenoiserLoss(torch.nn.Module):
+    """The denoiser's loss as a module's forward (condition tokens included), so DistributedDataParallel can wrap
+    it."""
+
+    def __init__(self, denoiser: LatentDenoiser):
+        super().__init__()
+        self.denoiser = denoiser
+
+    def forward(self, z_t, t, lengths, noise, drop, text=None, actions=None):
+        den, B = self.denoiser, len(z_t)
+        if den.config.cond == "none":
+            cond = den.null_tokens(B)
+        else:
+            cond = den.condition_tokens(B, text=text, actions=actions, drop=drop)
+        return torch.nn.functional.mse_loss(den(z_t, t, cond, lengths).float(), noise)
+
+
 def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     from mld_core.data.dataset import load_split
 
     out, vae_dir = Path(cfg.out), Path(cfg.vae)
     base = load_config(vae_dir)
-    prepare_run_dir(out, resume)
+    rt = distributed.runtime(cfg.device, cfg.bf16, cfg.fp32, (cfg.batch_size, "batch_size"))  # before any writing
+    rt.on_main(lambda: prepare_run_dir(out, resume))
     setup_torch(cfg.seed, cfg.threads)
     vae = MotionVAE(base.vae)
     load_weights(vae_dir / "vae.safetensors", vae)
     for p in vae.parameters():
         p.requires_grad_(False)
+    vae.to(rt.device)
     mean, std = base.mean_std
     fps = base.fps
 
@@ -233,9 +258,13 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     if resume:
         check_resumed_modules(out, cfg.train_modules)
 
-    # 2. Frozen-encoder latents and caption embeddings, cached in the run folder.
-    lat = _cached(out / LATENT_CACHE, lambda: encode_latents(vae, units, mean, std, cfg.crops_per_clip,
-                                                             base.min_frames, base.max_frames, cfg.seed))
+    # 2. Frozen-encoder latents and caption embeddings, cached in the run folder (made by rank 0, read by all).
+    def make_latents():
+        return encode_latents(vae, units, mean, std, cfg.crops_per_clip, base.min_frames, base.max_frames, cfg.seed)
+
+    rt.on_main(lambda: _cached(out / LATENT_CACHE, make_latents))
+    lat = _cached(out / LATENT_CACHE, make_latents)
+    del vae
     mu, lengths, unit_of = lat["mu"], lat["lengths"], lat["unit"]
     latent_mean = float(mu.mean())
     latent_scale = float(1.0 / mu.std())
@@ -253,10 +282,17 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
 
         encoder = load_text_encoder(cfg.text_encoder)
         dcfg.text_dim = encoder.dim
-        text = cached_caption_embeddings(out / TEXT_CACHE, captions,
-                                         lambda: embed_captions(encoder, captions, dcfg.max_text_tokens))
-        _write_coverage_index(out, units, encoder)
+
+        def make_text():
+            text = cached_caption_embeddings(out / TEXT_CACHE, captions,
+                                             lambda: embed_captions(encoder, captions, dcfg.max_text_tokens))
+            _write_coverage_index(out, units, encoder)
+            return text
+
+        rt.on_main(make_text)
+        text = cached_caption_embeddings(out / TEXT_CACHE, captions, lambda: None)  # as rank 0 wrote it
         del encoder
+        text = {k: v.to(rt.device) for k, v in text.items() if k != "captions_sha256"}
     label_ids = torch.tensor([actions.index(units[u].label) if units[u].label in actions else 0
                               for u in unit_of.tolist()])
 
@@ -266,14 +302,17 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
         load_weights(Path(cfg.init) / "denoiser.safetensors", denoiser)
     ema = copy.deepcopy(denoiser).requires_grad_(False)
     trained = trainable_parameters(denoiser, cfg.train_modules, "denoiser")
+    denoiser.to(rt.device)
+    ema.to(rt.device)
     opt = torch.optim.AdamW(trained, lr=cfg.lr, weight_decay=0.01)
     step, extra = load_train_state(out, denoiser, opt) if resume else (0, {})
     if resume and (out / "denoiser.safetensors").is_file():
         load_weights(out / "denoiser.safetensors", ema)
     weights = balanced_weights([units[u].label for u in unit_of.tolist()], cfg.balance_power)
-    rng = np.random.default_rng(cfg.seed + step)
     scheduler = DDPMScheduler(base.scheduler)
     n_train = base.scheduler.num_train_timesteps
+    unit_list = unit_of.tolist()
+    z0_all, lengths, label_ids = z0_all.to(rt.device), lengths.to(rt.device), label_ids.to(rt.device)
 
     config = copy.deepcopy(base)
     config.model_id = out.name
@@ -284,8 +323,10 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     config.guidance_scale = cfg.guidance_scale
     config.content_anchor = ContentAnchorConfig()  # an anchor is built and gated per denoiser (build_content_anchor.py)
     config.provenance = {**base.provenance, "denoiser_training": {k: v for k, v in asdict(cfg).items() if k != "denoiser"}}
-    shutil.copyfile(vae_dir / "vae.safetensors", out / "vae.safetensors")
-    save_json(out / "train_config.json", {**asdict(cfg), "stage": "denoiser"})
+    if rt.is_main:
+        shutil.copyfile(vae_dir / "vae.safetensors", out / "vae.safetensors")
+        save_json(out / "train_config.json", {**asdict(cfg), "stage": "denoiser",
+                                              "run": rt.describe(cfg.batch_size, "latents")})
 
     def save():
         config.provenance["denoiser_steps"] = step
@@ -293,36 +334,37 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
         save_json(out / "config.json", config.to_dict())
         save_train_state(out, denoiser, opt, step)
 
-    # 4. DDPM training: eps_theta(z_t, t, c) ~ eps with z_t = sqrt(a_t) z_0 + sqrt(1 - a_t) eps.
-    budget = Budget(cfg.steps, cfg.minutes)
-    log = open(out / "log.jsonl", "a")
-    bar = tqdm(total=cfg.steps, initial=step, desc="denoiser", unit="step", dynamic_ncols=True)
+    # 4. DDPM training: eps_theta(z_t, t, c) ~ eps with z_t = sqrt(a_t) z_0 + sqrt(1 - a_t) eps. Every process draws
+    #    the whole batch (rows, timesteps, noise, dropped conditions, captions) and trains on its rows of it.
+    budget = rt.budget(Budget(cfg.steps, cfg.minutes))
+    log = open(out / "log.jsonl", "a") if rt.is_main else None
+    bar = tqdm(total=cfg.steps, initial=step, desc="denoiser", unit="step", dynamic_ncols=True, disable=not rt.is_main)
+    model = rt.wrap(_DenoiserLoss(denoiser))
     denoiser.train()
     running = None
+    B = cfg.batch_size
+    n, d = dcfg.latent_tokens, dcfg.latent_dim
     while not budget.done(step):
         set_lr(opt, cfg.lr * lr_factor(budget.progress(step), cfg.decay_start))
-        idx = torch.from_numpy(rng.choice(len(z0_all), size=cfg.batch_size, p=weights))
-        z0, L = z0_all[idx], lengths[idx]
-        B = len(idx)
-        t = torch.randint(0, n_train, (B,))
-        noise = torch.randn_like(z0)
-        z_t = scheduler.add_noise(z0, noise, t)
-        drop = torch.rand(B) < dcfg.cond_dropout
+        rng, gen = distributed.step_rng(cfg.seed, step)
+        idx = rng.choice(len(z0_all), size=B, p=weights)
+        t = torch.randint(0, n_train, (B,), generator=gen)
+        noise = torch.randn(B, n, d, generator=gen)  # (B, n, d)
+        drop = torch.rand(B, generator=gen) < dcfg.cond_dropout
+        mine = rt.rows(B)
+        rows = torch.from_numpy(idx[mine]).to(rt.device)
+        t, noise, drop = (rt.to_device(v[mine]) for v in (t, noise, drop))
+        z_t = scheduler.add_noise(z0_all[rows], noise, t)
+        kwargs = {}
         if cfg.cond == "text":
-            cap = torch.tensor([int(rng.choice(unit_captions[u])) for u in unit_of[idx].tolist()])
-            emb = TextEmbedding(pooled=text["pooled"][cap], tokens=text["tokens"][cap].float(), mask=text["mask"][cap])
-            cond = denoiser.condition_tokens(B, text=emb, drop=drop)
+            cap = torch.tensor([int(rng.choice(unit_captions[unit_list[i]])) for i in idx])[mine].to(rt.device)
+            kwargs["text"] = TextEmbedding(pooled=text["pooled"][cap], tokens=text["tokens"][cap].float(),
+                                           mask=text["mask"][cap])
         elif cfg.cond == "action":
-            cond = denoiser.condition_tokens(B, actions=label_ids[idx], drop=drop)
-        else:
-            cond = denoiser.null_tokens(B)
-        with torch.autocast(z_t.device.type, dtype=torch.bfloat16, enabled=cfg.bf16):
-            pred = denoiser(z_t, t, cond, L)
-        loss = torch.nn.functional.mse_loss(pred.float(), noise)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(trained, 1.0)
-        opt.step()
+            kwargs["actions"] = label_ids[rows]
+        with rt.autocast():
+            loss = model(z_t, t, lengths[rows], noise, drop, **kwargs)
+        rt.step(loss * rt.share(B), opt, trained)
         with torch.no_grad():
             decay = min(cfg.ema_decay, (1 + step) / (10 + step))
             for pe, p in zip(ema.parameters(), denoiser.parameters()):
@@ -331,12 +373,15 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
         running = loss.item() if running is None else 0.98 * running + 0.02 * loss.item()
         bar.update(1)
         bar.set_postfix(loss=f"{running:.4f}")
-        if step % cfg.save_every == 0 or budget.done(step):
-            log.write(json.dumps({"step": step, "loss": running, "minutes": round(budget.minutes, 2)}) + "\n")
+        if (step % cfg.save_every == 0 or budget.done(step)) and rt.is_main:
+            log.write(json.dumps({"step": step, "loss": running, "minutes": round(budget.minutes, 2),
+                                  "seconds": round(budget.minutes * 60, 3)}) + "\n")
             log.flush()
             save()
     bar.close()
-    log.close()
-    if not (out / "config.json").is_file():
-        save()
+    if rt.is_main:
+        log.close()
+        if not (out / "config.json").is_file():
+            save()
+    rt.barrier()
     return out

@@ -32,6 +32,7 @@ from mld_core.models.denoiser import LatentDenoiser
 from mld_core.models.text_encoder import TextEmbedding
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import LCMScheduler
+from mld_core.training import distributed
 from mld_core.training.common import (Budget, balanced_weights, checked_budget, load_train_state, lr_factor,
                                      save_train_state, set_lr, setup_torch)
 from mld_core.training.denoiser import (LATENT_CACHE, TEXT_CACHE, _cached, cached_caption_embeddings, embed_captions,
@@ -50,7 +51,7 @@ class DraftTrainConfig:
     threads: int | None = None
     steps: int | None = None
     minutes: float | None = None
-    batch_size: int = 128
+    batch_size: int = 128  # the whole batch, over all processes (torchrun): each takes its share
     lr: float = 1e-4
     decay_start: float = 0.5
     ema_decay: float = 0.95  # the target network (LCM's target_unet)
@@ -72,6 +73,8 @@ class DraftTrainConfig:
     bf16: bool = False
     caches_from: str | None = None  # a denoiser run of the same VAE and data: reuse its latent and caption caches
     init: str | None = None  # a model folder whose Draft the student starts from (the teacher fine-tuned since)
+    device: str = "cpu"  # cpu, cuda, mps or auto (where this sitting trains; any sitting may resume on another)
+    fp32: bool = False  # on CUDA, no mixed precision (default there: bf16 autocast, or fp16 with a gradient scaler)
 
     def __post_init__(self):
         """Every setting checked before any work (a bad one would train nothing, or a Draft that cannot load), and
@@ -127,6 +130,18 @@ def huber(diff: torch.Tensor, c: float) -> torch.Tensor:
     return (diff.float() ** 2 + c**2).sqrt() - c
 
 
+class _DraftLoss(torch.nn.Module):
+    """The student's consistency loss as a module's forward, so DistributedDataParallel can wrap it."""
+
+    def __init__(self, student: LatentDenoiser, lcm: LCMScheduler, huber_c: float):
+        super().__init__()
+        self.student, self.lcm, self.huber_c = student, lcm, huber_c
+
+    def forward(self, z_t, t, emb, lengths, w, goal):
+        eps = self.student(z_t, t, self.student.condition_tokens(len(z_t), text=emb), lengths, w)
+        return huber(self.lcm.denoised(eps.float(), t, z_t) - goal, self.huber_c).mean()
+
+
 def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
     from mld_core.data.dataset import load_split
     from mld_core.models.text_encoder import load_text_encoder
@@ -137,29 +152,41 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
         raise ValueError(f"--teacher {teacher_dir} has no text-conditioned denoiser to distil")
     timesteps = draft_timesteps(cfg, LCMScheduler(base.scheduler, cfg.original_steps))  # checked before any work
     start = _starting_draft(cfg.init, base) if cfg.init and not resume else None
-    prepare_run_dir(out, resume)
-    setup_torch(cfg.seed, cfg.threads)
-    for name in (LATENT_CACHE, TEXT_CACHE) if cfg.caches_from and not resume else ():
-        if (Path(cfg.caches_from) / name).is_file():
-            shutil.copyfile(Path(cfg.caches_from) / name, out / name)
+    rt = distributed.runtime(cfg.device, cfg.bf16, cfg.fp32, (cfg.batch_size, "batch_size"))  # before any writing
 
-    # 1. Real latents z_0 of the training split and caption embeddings (cached; the teacher's VAE and normalisation).
-    vae = MotionVAE(base.vae)
-    load_weights(teacher_dir / "vae.safetensors", vae)
+    def prepare():
+        prepare_run_dir(out, resume)
+        for name in (LATENT_CACHE, TEXT_CACHE) if cfg.caches_from and not resume else ():
+            if (Path(cfg.caches_from) / name).is_file():
+                shutil.copyfile(Path(cfg.caches_from) / name, out / name)
+
+    rt.on_main(prepare)
+    setup_torch(cfg.seed, cfg.threads)
+
+    # 1. Real latents z_0 of the training split and caption embeddings (cached by rank 0; the teacher's VAE and
+    #    normalisation).
     mean, std = base.mean_std
     units = text_units(load_split(cfg.data, "train"), base.fps)
     if not units:
         raise ValueError(f"{cfg.data}: the train split is empty")
-    lat = _cached(out / LATENT_CACHE, lambda: encode_latents(vae, units, mean, std, cfg.crops_per_clip,
-                                                             base.min_frames, base.max_frames, cfg.seed))
-    del vae
-    z0_all = (lat["mu"] - base.latent_mean) * base.latent_scale  # (N, n, d)
-    lengths, unit_of = lat["lengths"], lat["unit"]
     captions = sorted({c for u in units for c in u.captions})
+
+    def make_caches():
+        vae = MotionVAE(base.vae)
+        load_weights(teacher_dir / "vae.safetensors", vae)
+        _cached(out / LATENT_CACHE, lambda: encode_latents(vae.to(rt.device), units, mean, std, cfg.crops_per_clip,
+                                                           base.min_frames, base.max_frames, cfg.seed))
+        cached_caption_embeddings(out / TEXT_CACHE, captions, lambda: embed_captions(
+            load_text_encoder(base.text_encoder), captions, base.denoiser.max_text_tokens))
+
+    rt.on_main(make_caches)
+    lat = _cached(out / LATENT_CACHE, lambda: None)  # as rank 0 wrote them
+    text = cached_caption_embeddings(out / TEXT_CACHE, captions, lambda: None)
+    text = {k: v.to(rt.device) for k, v in text.items() if k != "captions_sha256"}
+    z0_all = ((lat["mu"] - base.latent_mean) * base.latent_scale).to(rt.device)  # (N, n, d)
+    lengths, unit_of = lat["lengths"].to(rt.device), lat["unit"]
     caption_index = {c: i for i, c in enumerate(captions)}
     unit_captions = [np.array([caption_index[c] for c in u.captions]) for u in units]
-    text = cached_caption_embeddings(out / TEXT_CACHE, captions, lambda: embed_captions(
-        load_text_encoder(base.text_encoder), captions, base.denoiser.max_text_tokens))
 
     # 2. Teacher (frozen), student (the teacher plus a guidance input), its EMA target.
     teacher = LatentDenoiser(base.denoiser)
@@ -176,23 +203,26 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
     if start is not None:
         load_weights(start, student)
     target = copy.deepcopy(student).eval().requires_grad_(False)  # goals without dropout
+    teacher.to(rt.device), student.to(rt.device), target.to(rt.device)
     opt = torch.optim.AdamW(student.parameters(), lr=cfg.lr, weight_decay=0.0)
     step, _ = load_train_state(out, student, opt) if resume else (0, {})
     if resume and (out / DRAFT_WEIGHTS).is_file():
         load_weights(out / DRAFT_WEIGHTS, target)
-    lcm = LCMScheduler(base.scheduler, cfg.original_steps, draft.timestep_scaling, draft.sigma_data)
+    lcm = LCMScheduler(base.scheduler, cfg.original_steps, draft.timestep_scaling, draft.sigma_data).to(rt.device)
     weights = balanced_weights([units[u].label for u in unit_of.tolist()], cfg.balance_power)
-    rng = np.random.default_rng(cfg.seed + step)
+    unit_list = unit_of.tolist()
 
     config = copy.deepcopy(base)
     config.draft = draft
     config.provenance = {**base.provenance, "draft_training": asdict(cfg)}
-    if not resume:
+    if not resume and rt.is_main:
         for name in ("vae.safetensors", "denoiser.safetensors", "coverage_index.npz", content_anchor.FILE_NAME,
                      "MODEL_CARD.md"):
             if (teacher_dir / name).is_file():
                 shutil.copyfile(teacher_dir / name, out / name)
-    save_json(out / "train_config.json", {**asdict(cfg), "stage": "draft"})
+    if rt.is_main:
+        save_json(out / "train_config.json", {**asdict(cfg), "stage": "draft", "run": rt.describe(cfg.batch_size,
+                                                                                                   "latents")})
 
     def save():
         config.provenance["draft_steps"] = step
@@ -200,48 +230,53 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
         save_json(out / "config.json", config.to_dict())
         save_train_state(out, student, opt, step)
 
-    # 3. Consistency distillation.
-    budget = Budget(cfg.steps, cfg.minutes)
-    log = open(out / "log.jsonl", "a")
+    # 3. Consistency distillation: every process draws the whole batch and distils on its rows of it.
+    budget = rt.budget(Budget(cfg.steps, cfg.minutes))
+    log = open(out / "log.jsonl", "a") if rt.is_main else None
+    model = rt.wrap(_DraftLoss(student, lcm, cfg.huber_c), unused=True)  # the null condition
     student.train()
-    running, autocast = None, dict(device_type="cpu", dtype=torch.bfloat16, enabled=cfg.bf16)
+    running, B = None, cfg.batch_size
+    n, d = base.vae.latent_tokens, base.vae.latent_dim
     while not budget.done(step):
         set_lr(opt, cfg.lr * lr_factor(budget.progress(step), cfg.decay_start))
-        idx = torch.from_numpy(rng.choice(len(z0_all), size=cfg.batch_size, p=weights))
-        z0, L = z0_all[idx], lengths[idx]
-        B = len(idx)
-        cap = torch.tensor([int(rng.choice(unit_captions[u])) for u in unit_of[idx].tolist()])
+        rng, gen = distributed.step_rng(cfg.seed, step)
+        idx = rng.choice(len(z0_all), size=B, p=weights)
+        cap = torch.tensor([int(rng.choice(unit_captions[unit_list[i]])) for i in idx])
+        t = lcm.grid.cpu()[torch.randint(1, len(lcm.grid), (B,), generator=gen)]  # (B,) each with t - skip on the grid
+        w = cfg.guidance_min + (cfg.guidance_max - cfg.guidance_min) * torch.rand(B, generator=gen)
+        noise = torch.randn(B, n, d, generator=gen)  # (B, n, d)
+        mine = rt.rows(B)
+        rows = torch.from_numpy(idx[mine]).to(rt.device)
+        cap, t, w, noise = (rt.to_device(v[mine]) for v in (cap, t, w, noise))
+        b = len(mine)
+        z0, L = z0_all[rows], lengths[rows]
         emb = TextEmbedding(pooled=text["pooled"][cap], tokens=text["tokens"][cap].float(), mask=text["mask"][cap])
-        t = lcm.grid[torch.randint(1, len(lcm.grid), (B,))]  # (B,) each with t - skip on the grid
-        w = cfg.guidance_min + (cfg.guidance_max - cfg.guidance_min) * torch.rand(B)
-        z_t = lcm.add_noise(z0, torch.randn_like(z0), t)
-        with torch.no_grad(), torch.autocast(**autocast):
-            cond = teacher.condition_tokens(B, text=emb)
+        z_t = lcm.add_noise(z0, noise, t)
+        with torch.no_grad(), rt.autocast():
+            cond = teacher.condition_tokens(b, text=emb)
             eps_null, eps_cond = teacher(torch.cat([z_t, z_t]), torch.cat([t, t]),
-                                         torch.cat([teacher.null_tokens(B), cond]), torch.cat([L, L])).float().chunk(2)
+                                         torch.cat([teacher.null_tokens(b), cond]), torch.cat([L, L])).float().chunk(2)
             z_prev = lcm.teacher_step(eps_null + w[:, None, None] * (eps_cond - eps_null), t, z_t)
             t_prev = t - lcm.skip
-            goal = lcm.denoised(target(z_prev, t_prev, target.condition_tokens(B, text=emb), L, w).float(),
+            goal = lcm.denoised(target(z_prev, t_prev, target.condition_tokens(b, text=emb), L, w).float(),
                                 t_prev, z_prev)
-        with torch.autocast(**autocast):
-            eps = student(z_t, t, student.condition_tokens(B, text=emb), L, w)
-        loss = huber(lcm.denoised(eps.float(), t, z_t) - goal, cfg.huber_c).mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(student.parameters(), 1.0)
-        opt.step()
+        with rt.autocast():
+            loss = model(z_t, t, emb, L, w, goal)
+        rt.step(loss * rt.share(B), opt, list(student.parameters()))
         with torch.no_grad():
             for pt, p in zip(target.parameters(), student.parameters()):
                 pt.lerp_(p, 1 - cfg.ema_decay)
         step += 1
         running = loss.item() if running is None else 0.98 * running + 0.02 * loss.item()
-        if step % cfg.save_every == 0 or budget.done(step):
+        if (step % cfg.save_every == 0 or budget.done(step)) and rt.is_main:
             log.write(json.dumps({"step": step, "loss": running, "minutes": round(budget.minutes, 2)}) + "\n")
             log.flush()
             save()
-    log.close()
-    if not (out / "config.json").is_file():
-        save()
+    if rt.is_main:
+        log.close()
+        if not (out / "config.json").is_file():
+            save()
+    rt.barrier()
     return out
 
 

@@ -30,6 +30,7 @@ from mld_core.checkpoint import DRAFT_TEXT_WEIGHTS, load_config, save_json
 from mld_core.data.captions import SUBJECTS, reworded
 from mld_core.fileio import atomic_write
 from mld_core.inputs import InputError
+from mld_core.training import distributed
 from mld_core.training.common import (Budget, checked_budget, load_train_state, lr_factor, save_train_state,
                                      set_lr, setup_torch)
 
@@ -45,7 +46,7 @@ class DraftTextTrainConfig:
     threads: int | None = None
     steps: int | None = None
     minutes: float | None = None
-    batch_size: int = 64
+    batch_size: int = 64  # texts per batch, over all processes (torchrun): each takes its share
     lr: float = 1e-4
     decay_start: float = 0.5
     init_layers: list = field(default_factory=lambda: [0, 3, 5])  # the teacher's layers the student starts from
@@ -60,6 +61,8 @@ class DraftTextTrainConfig:
     random_share: float = 0.05  # share of all texts that are random words of the vocabulary (every word's states)
     val_texts: int = 256  # validation split captions scored at each save
     save_every: int = 100
+    device: str = "cpu"  # cpu, cuda, mps or auto (where this sitting trains; any sitting may resume on another)
+    fp32: bool = False  # accepted for every stage's --fp32; this stage trains in float32 everywhere
 
     def __post_init__(self):
         """Every setting checked before any work, and kept as the checked number."""
@@ -153,10 +156,14 @@ def _opposite(word: str) -> str:
     return OPPOSITES.get(core.lower(), core) + word[len(core):]
 
 
-def distil_loss(student, teacher, texts: list[str], cfg: DraftTextTrainConfig, denoisers: list = ()
-                ) -> tuple[torch.Tensor, dict]:
+def distil_loss(student, teacher, texts: list[str], cfg: DraftTextTrainConfig, denoisers: list = (),
+                totals=None) -> tuple[torch.Tensor, dict]:
     """Hidden-state MSE over real tokens + pooled_weight x (1 - cos) of the pooled embeddings + condition_weight x
-    the MSE (over its variance) of each denoiser's condition tokens, and the parts."""
+    the MSE (over its variance) of each denoiser's condition tokens, and the parts.
+
+    ``totals`` (one of torchrun's processes, ``texts`` its rows of a batch): a function summing a tensor over the
+    processes; the loss is then this process's part of the whole batch's, whose sum over the processes is the whole
+    batch's loss (the token count and the variances are the whole batch's)."""
     from mld_core.models.text_encoder import TextEmbedding
 
     with torch.no_grad():
@@ -164,19 +171,44 @@ def distil_loss(student, teacher, texts: list[str], cfg: DraftTextTrainConfig, d
     own_text = student.embed(*student.tokenize(texts))  # differentiable
     states, pooled, mask = own_text.tokens, own_text.pooled, own_text.mask
     m = mask[..., None].float()  # (B, L, 1)
-    mse = (((states - goal.tokens.float()) ** 2) * m).sum() / (m.sum() * states.shape[-1])
-    cos = (pooled * goal.pooled.float()).sum(-1).mean()
-    loss, parts = mse + cfg.pooled_weight * (1 - cos), {"mse": mse.item(), "cos": cos.item()}
+    rows = len(texts) if totals is None else float(totals(torch.tensor(float(len(texts)), device=m.device)))
+    count = m.sum() if totals is None else totals(m.sum().detach())
+    mse = (((states - goal.tokens.float()) ** 2) * m).sum() / (count * states.shape[-1])
+    cos = (pooled * goal.pooled.float()).sum(-1).sum() / rows
+    loss = mse + cfg.pooled_weight * (len(texts) / rows - cos)
+    parts = {"mse": mse.item(), "cos": cos.item()}
     for k, den in enumerate(denoisers if cfg.condition_weight else ()):
         L = den.config.max_text_tokens
         with torch.no_grad():
             aim = den.condition_tokens(len(texts), text=TextEmbedding(
                 goal.pooled.float(), goal.tokens[:, :L].float(), goal.mask[:, :L]))  # (B, C, d)
         own = den.condition_tokens(len(texts), text=TextEmbedding(pooled, states[:, :L], mask[:, :L]))
-        cond = ((own - aim) ** 2).mean() / aim.var().clamp(min=1e-12)
+        error = ((own - aim) ** 2).mean() if totals is None else ((own - aim) ** 2).sum() / (rows * aim[0].numel())
+        cond = error / _variance(aim, totals).clamp(min=1e-12)
         loss = loss + cfg.condition_weight * cond
         parts[f"cond{k}"] = cond.item()
     return loss, parts
+
+
+def _variance(x: torch.Tensor, totals=None) -> torch.Tensor:
+    """The variance of every element of ``x`` (unbiased); with ``totals``, over every process's ``x``."""
+    if totals is None:
+        return x.var()
+    n, s1, s2 = totals(torch.stack([torch.tensor(float(x.numel()), device=x.device), x.sum(), (x ** 2).sum()]).double())
+    return ((s2 - s1 * s1 / n) / (n - 1)).to(x.dtype)
+
+
+class _DistilLoss(nn.Module):
+    """This process's part of the distillation loss as a module's forward, so DistributedDataParallel can wrap the
+    student (the teacher and the denoisers stay outside: frozen, and not broadcast)."""
+
+    def __init__(self, student, teacher, cfg: DraftTextTrainConfig, denoisers: list, totals):
+        super().__init__()
+        self.student, self.frozen, self.cfg, self.totals = student, (teacher, list(denoisers)), cfg, totals
+
+    def forward(self, texts: list[str]):
+        teacher, denoisers = self.frozen
+        return distil_loss(self.student, teacher, texts, self.cfg, denoisers, self.totals)
 
 
 def trainable(encoder) -> nn.Module:
@@ -205,57 +237,72 @@ def train_draft_text(cfg: DraftTextTrainConfig, resume: bool = False) -> Path:
 
     out, teacher_dir = Path(cfg.out), Path(cfg.teacher)
     base = load_config(teacher_dir)
-    teacher = _teacher_encoder(base, teacher_dir, cfg.init_layers)
+    # float32 everywhere: the layers' states are matched to a fine tolerance
+    rt = distributed.runtime(cfg.device, batch=(cfg.batch_size, "batch_size"))
+    teacher = _teacher_encoder(base, teacher_dir, cfg.init_layers, rt.device)
     captions = sorted({c for u in text_units(load_split(cfg.data, "train"), base.fps) for c in u.captions if c})
     val = sorted({c for u in text_units(load_split(cfg.data, "val"), base.fps) for c in u.captions if c})
     if not captions:
         raise ValueError(f"{cfg.data}: the train split has no captions")
     if resume:
         _check_same_student(out, cfg)
-    prepare_run_dir(out, resume)
+    rt.on_main(lambda: prepare_run_dir(out, resume))
     setup_torch(cfg.seed, cfg.threads)
-    denoisers = _frozen_denoisers(teacher_dir, base) if cfg.condition_weight else []
+    denoisers = [d.to(rt.device) for d in _frozen_denoisers(teacher_dir, base)] if cfg.condition_weight else []
     vocabulary = whole_words(teacher.tokenizer)
 
     # 1. The student: copies of the teacher's layers init_layers on its embeddings.
-    student = trainable(teacher.keep_layers(cfg.init_layers))
+    student = trainable(teacher.keep_layers(cfg.init_layers)).to(rt.device)
     opt = torch.optim.AdamW([p for p in student.parameters()], lr=cfg.lr, weight_decay=0.0)
     step, _ = load_train_state(out, student, opt) if resume else (0, {})
-    rng = np.random.default_rng(cfg.seed + step)
     val = [val[i] for i in np.random.default_rng(cfg.seed).permutation(len(val))[: cfg.val_texts]] or captions[:1]
-    save_json(out / "train_config.json", {**asdict(cfg), "stage": "draft-text"})
+    if rt.is_main:
+        save_json(out / "train_config.json", {**asdict(cfg), "stage": "draft-text",
+                                              "run": rt.describe(cfg.batch_size, "texts")})
+    totals = _sum_over_processes if rt.size > 1 else None
+    model = rt.wrap(_DistilLoss(student, teacher, cfg, denoisers, totals))
 
     def validate() -> dict:
         with torch.no_grad():
             _, parts = distil_loss(student, teacher, val, cfg, denoisers)
         return {f"val_{k}": v for k, v in parts.items()}
 
-    # 2. Distillation; each save writes the layers and the train state, then logs the step.
-    with open(out / "log.jsonl", "a") as log:
-        if step == 0:
-            log.write(json.dumps({"step": 0, **validate()}) + "\n")
-        budget, running = Budget(cfg.steps, cfg.minutes), None
-        while not budget.done(step):
-            set_lr(opt, cfg.lr * lr_factor(budget.progress(step), cfg.decay_start))
-            texts = [text_variant(captions, rng, cfg, vocabulary) for _ in range(cfg.batch_size)]
-            loss, _ = distil_loss(student, teacher, texts, cfg, denoisers)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(student.parameters(), 1.0)
-            opt.step()
-            step += 1
-            running = loss.item() if running is None else 0.95 * running + 0.05 * loss.item()
-            if step % cfg.save_every == 0 or budget.done(step):
-                save_layers(student, out / DRAFT_TEXT_WEIGHTS)
-                save_train_state(out, student, opt, step)
-                log.write(json.dumps({"step": step, "loss": running, **validate(),
-                                      "minutes": round(budget.minutes, 2)}) + "\n")
-                log.flush()
+    # 2. Distillation; each save writes the layers and the train state, then logs the step. Every process draws
+    #    the whole batch of texts and trains on its rows of it.
+    log = open(out / "log.jsonl", "a") if rt.is_main else None
+    if step == 0 and rt.is_main:
+        log.write(json.dumps({"step": 0, **validate()}) + "\n")
+    budget, running = rt.budget(Budget(cfg.steps, cfg.minutes)), None
+    while not budget.done(step):
+        set_lr(opt, cfg.lr * lr_factor(budget.progress(step), cfg.decay_start))
+        rng, _ = distributed.step_rng(cfg.seed, step)
+        texts = [text_variant(captions, rng, cfg, vocabulary) for _ in range(cfg.batch_size)]
+        loss, _ = model([texts[i] for i in rt.rows(len(texts))])
+        rt.step(loss * rt.size, opt, list(student.parameters()))
+        step += 1
+        running = loss.item() * rt.size if running is None else 0.95 * running + 0.05 * loss.item() * rt.size
+        if (step % cfg.save_every == 0 or budget.done(step)) and rt.is_main:
+            save_layers(student, out / DRAFT_TEXT_WEIGHTS)
+            save_train_state(out, student, opt, step)
+            log.write(json.dumps({"step": step, "loss": running, **validate(),
+                                  "minutes": round(budget.minutes, 2)}) + "\n")
+            log.flush()
+    if rt.is_main:
+        log.close()
+    rt.barrier()
     return out
 
 
-def _teacher_encoder(base, teacher_dir: Path, init_layers: list):
-    """The model's MiniLM, prepacked, checked to have the layers ``init_layers`` names (one-line errors)."""
+def _sum_over_processes(value: torch.Tensor) -> torch.Tensor:
+    """``value`` summed over torchrun's processes (no gradient flows through)."""
+    value = value.detach().clone()
+    torch.distributed.all_reduce(value)
+    return value
+
+
+def _teacher_encoder(base, teacher_dir: Path, init_layers: list, device: torch.device | str = "cpu"):
+    """The model's MiniLM on ``device`` (prepacked on the CPU), checked to have the layers ``init_layers`` names
+    (one-line errors)."""
     from mld_core.models.text_encoder import MiniLMEncoder, TextEncoderError, load_text_encoder
 
     try:
@@ -266,7 +313,8 @@ def _teacher_encoder(base, teacher_dir: Path, init_layers: list):
         raise ValueError(f"--teacher {teacher_dir}: its text encoder ({base.text_encoder.get('kind')}) is no MiniLM")
     if max(init_layers) >= len(teacher.layers):
         raise ValueError(f"init_layers {init_layers}: the text encoder has {len(teacher.layers)} layers")
-    teacher.pack_for_cpu_inference()
+    teacher.to(device)
+    teacher.pack_for_cpu_inference()  # no-op off the CPU
     return teacher
 
 

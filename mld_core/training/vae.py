@@ -4,6 +4,8 @@
 
 Each batch draws one crop length L (uniform in [min_frames, max_frames]) and clips at least L long, sampled with
 content-balanced weights, so no compute goes to padding. Validation: root-relative MPJPE (mm) on the val split.
+``frames_per_batch`` is the whole batch's, split between torchrun's processes (mld_core.training.distributed); the
+clips' features sit on the training device, where each batch is cut from them.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from mld_core.checkpoint import ModelConfig, load_config, load_weights, save_jso
 from mld_core.models.vae import MotionVAE, VAEConfig
 from mld_core.motion import skeleton as sk
 from mld_core.motion.features import FOOT_CONTACT, ROOT_ROT_VEL, ROOT_Y, features_to_joints
+from mld_core.training import distributed
 from mld_core.training.common import (Budget, balanced_weights, check_resumed_modules, checked_budget,
                                      checked_module_names, load_train_state, lr_factor, save_train_state, set_lr,
                                      setup_torch, trainable_parameters)
@@ -38,7 +41,7 @@ class VAETrainConfig:
     threads: int | None = None
     steps: int | None = None
     minutes: float | None = None
-    frames_per_batch: int = 2048
+    frames_per_batch: int = 2048  # the whole batch's frames, over all processes (torchrun): each takes its share
     lr: float = 3e-4
     min_frames: int = 40
     max_frames: int = 196
@@ -63,6 +66,8 @@ class VAETrainConfig:
     # the VAE's top-level modules to train; None: all. The decoder side alone (latent_positions, decoder, head) keeps
     # the encoder and so every latent a denoiser learned: the fine-tuned decoder pairs with that denoiser unchanged
     train_modules: list | None = None
+    device: str = "cpu"  # cpu, cuda, mps or auto (where this sitting trains; any sitting may resume on another)
+    fp32: bool = False  # on CUDA, no mixed precision (default there: bf16 autocast, or fp16 with a gradient scaler)
     vae: VAEConfig = field(default_factory=VAEConfig)
 
     def __post_init__(self):
@@ -100,6 +105,7 @@ class GeometricLoss:
 
     def __call__(self, recon: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, dict]:
         """recon, x: (B, L, F) normalised features of equal-length crops."""
+        self.mean, self.std = self.mean.to(x.device), self.std.to(x.device)
         pred = features_to_joints(recon.float() * self.std + self.mean)  # (B, L, 22, 3)
         real = features_to_joints(x.float() * self.std + self.mean)
         parents = list(sk.PARENTS[1:])
@@ -118,38 +124,71 @@ class GeometricLoss:
 
 
 class CropSampler:
-    """Batches of equal-length random crops: (B, L, F) normalised features."""
+    """Batches of equal-length random crops: (B, L, F) normalised features, cut from one bank of every clip's frames
+    (on the training device where it fits, else in pinned CPU memory)."""
 
-    def __init__(self, clips, mean, std, min_frames, max_frames, frames_per_batch, balance_power, seed,
-                 clip_start_share: float = 0.0):
-        self.feats = [((c.features - mean) / std).astype(np.float32) for c in clips]
-        self.lengths = np.array([len(f) for f in self.feats])
+    def __init__(self, clips, mean, std, min_frames, max_frames, frames_per_batch, balance_power,
+                 clip_start_share: float = 0.0, device: torch.device | str = "cpu"):
+        feats = [((c.features - mean) / std).astype(np.float32) for c in clips]
+        self.lengths = np.array([len(f) for f in feats])
+        self.offsets = np.concatenate([[0], np.cumsum(self.lengths)[:-1]])
         labels = [c.action or "?" for c in clips]
         self.weights = balanced_weights(labels, balance_power)
         self.min_frames = min(min_frames, int(self.lengths.max()))
         self.max_frames = min(max_frames, int(self.lengths.max()))
         self.frames_per_batch = frames_per_batch
         self.clip_start_share = clip_start_share
-        self.rng = np.random.default_rng(seed)
+        self.bank = _bank(torch.from_numpy(np.concatenate(feats)), torch.device(device))  # (frames, F)
 
-    def sample(self) -> tuple[torch.Tensor, torch.Tensor]:
-        L = int(self.rng.integers(self.min_frames, self.max_frames + 1))
+    def draw(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, int]:
+        """One whole batch: (clip of each row, its crop's first frame, the crop length L)."""
+        L = int(rng.integers(self.min_frames, self.max_frames + 1))
         ok = self.lengths >= L
         w = self.weights * ok
         B = max(4, self.frames_per_batch // L)
-        idx = self.rng.choice(len(self.feats), size=B, p=w / w.sum())
-        starts = [int(self.rng.integers(0, self.lengths[i] - L + 1)) for i in idx]
+        idx = rng.choice(len(self.lengths), size=B, p=w / w.sum())
+        starts = np.array([int(rng.integers(0, self.lengths[i] - L + 1)) for i in idx])
         if self.clip_start_share > 0:
-            at_start = self.rng.random(B) < self.clip_start_share
-            starts = [0 if first else s for first, s in zip(at_start, starts)]
-        x = np.stack([self.feats[i][s:s + L] for i, s in zip(idx, starts)])  # (B, L, F)
-        return torch.from_numpy(x), torch.full((B,), L)
+            starts = np.where(rng.random(B) < self.clip_start_share, 0, starts)
+        return idx, starts, L
+
+    def crops(self, idx: np.ndarray, starts: np.ndarray, L: int, device: torch.device) -> torch.Tensor:
+        """The crops (B, L, F) on ``device``."""
+        first = torch.from_numpy(self.offsets[idx] + starts)  # (B,)
+        frames = first[:, None] + torch.arange(L)  # (B, L) rows of the bank
+        x = self.bank[frames.to(self.bank.device)]
+        return x if x.device == device else x.to(device, non_blocking=True)
+
+    def sample(self, rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        idx, starts, L = self.draw(rng)
+        return self.crops(idx, starts, L, self.bank.device), torch.full((len(idx),), L)
+
+
+def _bank(frames: torch.Tensor, device: torch.device) -> torch.Tensor:
+    """The frames on ``device`` when they take at most half of its free memory, else (CUDA) pinned CPU memory."""
+    if device.type == "cuda":
+        free, _ = torch.cuda.mem_get_info(device)
+        nbytes = frames.numel() * frames.element_size()
+        return frames.to(device) if nbytes <= free // 2 else frames.pin_memory()
+    return frames.to(device)
+
+
+class _VAELoss(torch.nn.Module):
+    """The VAE's loss as a module's forward, so DistributedDataParallel can wrap it."""
+
+    def __init__(self, vae: MotionVAE):
+        super().__init__()
+        self.vae = vae
+
+    def forward(self, x, lengths, weights, noise):
+        return self.vae.loss(x, lengths, return_recon=True, feature_weights=weights, noise=noise)
 
 
 @torch.no_grad()
 def validate_mpjpe(vae: MotionVAE, clips, mean, std, max_frames: int, batch: int = 32) -> tuple[float, float]:
     """Root-relative and global MPJPE in mm of encode(mu) -> decode on the first max_frames of each clip."""
     vae.eval()
+    device = next(vae.parameters()).device
     errors, global_errors = [], []
     items = [((c.features[:max_frames] - mean) / std).astype(np.float32) for c in clips]
     order = np.argsort([len(x) for x in items])
@@ -160,8 +199,8 @@ def validate_mpjpe(vae: MotionVAE, clips, mean, std, max_frames: int, batch: int
         x = torch.zeros(len(group), T, group[0].shape[-1])
         for i, g in enumerate(group):
             x[i, : len(g)] = torch.from_numpy(g)
-        mu, _ = vae.encode(x, lengths)
-        recon = vae.decode(mu, lengths, max_len=T)
+        mu, _ = vae.encode(x.to(device), lengths.to(device))
+        recon = vae.decode(mu, lengths.to(device), max_len=T).float().cpu()
         mean_t, std_t = torch.from_numpy(mean), torch.from_numpy(std)
         for i, n in enumerate(lengths.tolist()):
             j_true = features_to_joints(x[i, :n] * std_t + mean_t)
@@ -208,10 +247,13 @@ def prepare_run_dir(out: Path, resume: bool) -> None:
 
 
 def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
-    from mld_core.data.dataset import load_mean_std, load_split, read_actions
+    from mld_core.data.dataset import load_mean_std, load_split
 
     out = Path(cfg.out)
-    prepare_run_dir(out, resume)
+    rt = distributed.runtime(cfg.device, cfg.bf16, cfg.fp32,  # checked before anything is written
+                             (max(4, cfg.frames_per_batch // cfg.max_frames),
+                              "a batch of the longest crops (frames_per_batch // max_frames clips, at least 4)"))
+    rt.on_main(lambda: prepare_run_dir(out, resume))
     setup_torch(cfg.seed, cfg.threads)
     mean, std = load_mean_std(cfg.data)
     mean, std = np.asarray(mean, np.float32), np.asarray(std, np.float32)
@@ -239,39 +281,47 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
     if init is not None and not resume:
         load_weights(Path(cfg.init) / "vae.safetensors", vae)
     trained = trainable_parameters(vae, cfg.train_modules, "VAE")
+    vae.to(rt.device)
     opt = torch.optim.AdamW(trained, lr=cfg.lr, weight_decay=0.0)
     step, extra = (load_train_state(out, vae, opt) if resume else (0, {}))
     geometric = GeometricLoss(cfg, mean, std)
     weights = feature_weights(cfg.vae.feature_dim, cfg.root_weight)
+    weights = weights.to(rt.device) if weights is not None else None
     sampler = CropSampler(train, mean, std, cfg.min_frames, cfg.max_frames, cfg.frames_per_batch,
-                          cfg.balance_power, cfg.seed + step, cfg.clip_start_share)
+                          cfg.balance_power, cfg.clip_start_share, rt.device)
     best = extra.get("best_mpjpe_mm", float("inf"))
     actions = sorted({c.action for c in train if c.action})
-    save_json(out / "train_config.json", {**asdict(cfg), "stage": "vae"})
-    budget = Budget(cfg.steps, cfg.minutes)
-    log = open(out / "log.jsonl", "a")
-    bar = tqdm(total=cfg.steps, initial=step, desc="vae", unit="step", dynamic_ncols=True)
+    if rt.is_main:
+        save_json(out / "train_config.json", {**asdict(cfg), "stage": "vae",
+                                              "run": rt.describe(cfg.frames_per_batch, "frames")})
+    budget = rt.budget(Budget(cfg.steps, cfg.minutes))
+    log = open(out / "log.jsonl", "a") if rt.is_main else None
+    bar = tqdm(total=cfg.steps, initial=step, desc="vae", unit="step", dynamic_ncols=True, disable=not rt.is_main)
+    model = rt.wrap(_VAELoss(vae))
     vae.train()
     frames_seen, t0 = 0, time.monotonic()
     while not budget.done(step):
-        x, lengths = sampler.sample()
+        rng, gen = distributed.step_rng(cfg.seed, step)
+        idx, starts, L = sampler.draw(rng)  # the whole batch, the same in every process
+        noise = torch.randn(len(idx), cfg.vae.latent_tokens, cfg.vae.latent_dim, generator=gen)  # (B, n, d)
+        mine = rt.rows(len(idx))  # this process's rows
+        x = sampler.crops(idx[mine], starts[mine], L, rt.device)  # (b, L, F)
+        lengths = torch.full((len(mine),), L, device=rt.device)
         set_lr(opt, cfg.lr * lr_factor(budget.progress(step), cfg.decay_start))
-        with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=cfg.bf16):
-            loss, parts, recon = vae.loss(x, lengths, return_recon=True, feature_weights=weights)
+        with rt.autocast():
+            loss, parts, recon = model(x, lengths, weights, rt.to_device(noise[mine]))
         if geometric:
             extra_loss, extra_parts = geometric(recon, x)
             loss, parts = loss + extra_loss, {**parts, **extra_parts}
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(trained, 1.0)
-        opt.step()
+        rt.step(loss * rt.share(len(idx)), opt, trained)
         step += 1
-        frames_seen += x.shape[0] * x.shape[1]
+        frames_seen += x.shape[0] * x.shape[1] * rt.size
         bar.update(1)
         bar.set_postfix(loss=f"{loss.item():.4f}", kl=f"{parts['kl']:.1f}", fps=f"{frames_seen / (time.monotonic() - t0):.0f}")
         last = budget.done(step)
-        if step % cfg.val_every == 0 or last:
-            record = {"step": step, "loss": loss.item(), **parts, "minutes": round(budget.minutes, 2)}
+        if (step % cfg.val_every == 0 or last) and rt.is_main:
+            record = {"step": step, "loss": loss.item(), **parts, "minutes": round(budget.minutes, 2),
+                      "seconds": round(budget.minutes * 60, 3)}
             if val:
                 record["val_mpjpe_mm"], record["val_global_mpjpe_mm"] = validate_mpjpe(vae, val, mean, std,
                                                                                        cfg.vae.max_frames)
@@ -290,9 +340,11 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
                 save_json(out / "config.json", config.to_dict())
             save_train_state(out, vae, opt, step, {"best_mpjpe_mm": best})
     bar.close()
-    log.close()
-    if not (out / "config.json").exists():
-        save_weights(out / "vae.safetensors", vae)
-        config = model_config_for(cfg, mean, std, actions, f"{out.name}-vae", keep_from)
-        save_json(out / "config.json", config.to_dict())
+    if rt.is_main:
+        log.close()
+        if not (out / "config.json").exists():
+            save_weights(out / "vae.safetensors", vae)
+            config = model_config_for(cfg, mean, std, actions, f"{out.name}-vae", keep_from)
+            save_json(out / "config.json", config.to_dict())
+    rt.barrier()
     return out
