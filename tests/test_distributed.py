@@ -200,10 +200,11 @@ def test_a_batch_too_small_for_the_processes_is_refused(folder, tmp_path, capsys
 @pytest.mark.parametrize("device, words", [
     ("gpu", "--device 'gpu' is not a device: use cpu, cuda, mps or auto"),
     ("cuda", "--device cuda:"),
+    ("mps", "--device mps: Metal (MPS) is not available on this machine"),
 ])
 def test_a_device_this_machine_lacks_is_refused(folder, tmp_path, capsys, device, words):
-    if device == "cuda" and torch.cuda.is_available():
-        pytest.skip("this machine has CUDA")
+    if device == "cuda" and torch.cuda.is_available() or device == "mps" and torch.backends.mps.is_available():
+        pytest.skip(f"this machine has {device}")
     data = ["--data", folder]
     for argv in (["train", "vae", *data, "--out", tmp_path / "run"], ["train", "denoiser", *data, "--vae", folder,
                                                                          "--out", tmp_path / "run"],
