@@ -367,7 +367,7 @@ def test_batch_script_end_to_end(tmp_path, tiny_dir, capsys):
         (["--prompts", tmp_path / "none.txt", "--out", tmp_path / "x.blend"], "prompt file not found"),
         (["--prompt", "walk", "--out", tmp_path / "x.txt"], "must name a .blend"),
         (["--prompt", "walk", "--out", tmp_path / "x.blend", "--model", tmp_path / "nomodel"], "model folder not found"),
-        (["--out", tmp_path / "x.blend"], "one of the arguments --prompts --prompt --jobs is required"),
+        (["--out", tmp_path / "x.blend"], "one of the arguments --prompts --prompt --jobs --merge is required"),
     ]
     for extra, words in cases:
         assert batch.main(["batch.py", *map(str, extra)]) == 2, extra
