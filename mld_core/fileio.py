@@ -35,6 +35,17 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None], suffix: 
     return path
 
 
+def make_parents(folder: Path) -> list[Path]:
+    """Make ``folder`` and the folders above it that are missing; returns those made, outermost first."""
+    missing = []
+    while not folder.exists():
+        missing.append(folder)
+        folder = folder.parent
+    for f in reversed(missing):
+        f.mkdir()
+    return missing[::-1]
+
+
 class OutputSet:
     """Several outputs written beside their targets under temporary names, then put in place all together or not
     at all. Without ``overwrite`` each target is claimed exclusively at commit time (a hard link, which fails if the
@@ -93,13 +104,7 @@ class OutputSet:
         self._made_dirs.clear()
 
     def _make_parent(self, folder: Path) -> None:
-        missing = []
-        while not folder.exists():
-            missing.append(folder)
-            folder = folder.parent
-        for f in reversed(missing):
-            f.mkdir()
-            self._made_dirs.append(f)
+        self._made_dirs += make_parents(folder)
 
     def __enter__(self) -> "OutputSet":
         return self

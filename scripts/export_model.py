@@ -34,6 +34,7 @@ sys.path.insert(0, str(REPO))
 
 from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, CheckpointError, load_config,  # noqa: E402
                                  load_weights, save_model)
+from mld_core.fileio import make_parents  # noqa: E402
 from mld_core.inputs import InputError, check_output_folder  # noqa: E402
 from mld_core.models.denoiser import LatentDenoiser  # noqa: E402
 from mld_core.models.vae import MotionVAE, take_decoder  # noqa: E402
@@ -144,17 +145,6 @@ def check_data(data: Path | None) -> None:
         raise InputError(f"--data {data}: {str(exc).splitlines()[0]}") from None
     if not captions:
         raise InputError(f"--data {data}: no train captions to build the coverage index from")
-
-
-def make_parents(folder: Path) -> list[Path]:
-    """Make ``folder`` and the folders above it that are missing; returns those made, outermost first."""
-    missing = []
-    while not folder.exists():
-        missing.append(folder)
-        folder = folder.parent
-    for f in reversed(missing):
-        f.mkdir()
-    return missing[::-1]
 
 
 def main(argv=None) -> int:

@@ -440,15 +440,23 @@ def swap_into_place(tmp: Path, out: Path, found: tuple | None) -> None:
     began, is replaced: a new or empty ``out`` is claimed only if still new or empty, a previous output (checked
     again) is moved aside, renamed over and then removed. An output another run put there meanwhile wins:
     PrepareError, and this run keeps nothing."""
-    _check_out(out)
+    another_run = (f"--out {out} was written by another run meanwhile; this run kept nothing - choose another folder "
+                   "or run it again")
+    try:
+        _check_out(out)
+    except OSError:  # another run is moving a previous output out of the way right now
+        raise PrepareError(another_run) from None
+    except PrepareError:
+        if _identity(out) != found:  # what is there now is not what this run found: another run's doing
+            raise PrepareError(another_run) from None
+        raise
     try:
         if found is None:
             claim_folder(tmp, out)
         else:
             _replace(tmp, out, found)
     except FileExistsError:
-        raise PrepareError(f"--out {out} was written by another run meanwhile; this run kept nothing - choose "
-                           "another folder or run it again") from None
+        raise PrepareError(another_run) from None
     except OSError as exc:
         raise PrepareError(f"cannot write --out {out}: {exc.strerror or exc}") from None
 
