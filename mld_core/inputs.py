@@ -205,17 +205,26 @@ def read_json_file(path, what: str):
         raise InputError(f"{where}: not a file")
     try:
         size = path.stat().st_size
-        if size > MAX_JSON_BYTES:
-            raise InputError(f"{where} is {size / 2**20:.0f} MB; the limit is {MAX_JSON_BYTES // 2**20} MB")
-        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read {where}: {exc.strerror or exc}") from None
+    if size > MAX_JSON_BYTES:
+        raise InputError(f"{where} is {size / 2**20:.0f} MB; the limit is {MAX_JSON_BYTES // 2**20} MB")
+    return parse_json(read_utf8(path, where, encoding="utf-8-sig"), where)
+
+
+def read_utf8(path, where: str, shown: str | None = None, encoding: str = "utf-8") -> str:
+    """A user's text file's contents; one InputError naming ``where`` when it cannot be read, and ``shown`` (default
+    ``where``) with the line when it is not UTF-8 text."""
+    try:
+        data = Path(path).read_bytes()
     except OSError as exc:
         raise InputError(f"cannot read {where}: {exc.strerror or exc}") from None
     try:
-        text = data.decode("utf-8-sig")
+        return data.decode(encoding)
     except UnicodeDecodeError as exc:
         line = data[: exc.start].count(b"\n") + 1
-        raise InputError(f"{where}, line {line}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
-    return parse_json(text, where)
+        raise InputError(f"{shown or where}, line {line}: not UTF-8 text ({exc.reason} at byte {exc.start}); save it "
+                         "as UTF-8") from None
 
 
 # -- the model's limits ---------------------------------------------------------------------------------------------
@@ -339,16 +348,7 @@ def read_prompt_file(path) -> list[PromptLine]:
         raise InputError(f"prompt file not found: {path}")
     if not path.is_file():
         raise InputError(f"cannot read prompt file {path}: not a file")
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise InputError(f"cannot read prompt file {path}: {exc.strerror or exc}") from None
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        line = data[: exc.start].count(b"\n") + 1
-        raise InputError(f"{path}, line {line}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
-    return parse_prompt_lines(text, str(path))
+    return parse_prompt_lines(read_utf8(path, f"prompt file {path}", str(path)), str(path))
 
 
 # -- one generation request ----------------------------------------------------------------------------------------

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..fileio import claim_folder
-from ..inputs import InputError, check_output_folder
+from ..inputs import InputError, check_output_folder, read_utf8
 from ..motion import features as F
 from ..motion.skeleton import FEATURE_DIM
 
@@ -56,15 +56,7 @@ def check_sources(sources: list[Path]) -> None:
 
 def _text(path: Path) -> str:
     """A UTF-8 text file's contents; InputError naming the file (and the line) otherwise."""
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise InputError(f"cannot read {path}: {exc.strerror or exc}") from None
-    try:
-        return data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        line = data[: exc.start].count(b"\n") + 1
-        raise InputError(f"{path}, line {line}: not UTF-8 text; save it as UTF-8") from None
+    return read_utf8(path, str(path))
 
 
 def _split_ids(folder: Path, split: str, seen: dict[str, str]) -> list[str]:
