@@ -5,6 +5,7 @@ folder built under a temporary name: :func:`claim_folder`)."""
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Callable
@@ -148,3 +149,36 @@ def claim_folder(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
         os.rename(tmp, path)
     except OSError:
         raise FileExistsError(f"{path} exists (written by another run?)") from None
+
+
+def build_new_folder(out: str | os.PathLike, write: Callable[[Path], object], what: str = "--out"):
+    """Build a new folder: ``write(tmp)`` fills a temporary sibling of ``out``, which then takes the name ``out``
+    only if that is still new or empty. Returns what ``write`` returned. On any failure nothing is left, not even
+    the parent folders this made; another run that took ``out`` meanwhile and an OSError are an InputError."""
+    from .inputs import InputError
+
+    out = Path(out)
+    made = [p for p in reversed(out.parents) if not p.exists()]
+    tmp = None
+    try:
+        for folder in made:
+            folder.mkdir(exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+        result = write(tmp)
+        try:
+            claim_folder(tmp, out)
+        except FileExistsError:
+            raise InputError(f"{what} {out} was written by another run meanwhile; this run kept nothing - choose "
+                             "another folder") from None
+        return result
+    except OSError as exc:
+        raise InputError(f"cannot write {what} {out}: {exc.strerror or exc}; choose another folder") from None
+    finally:
+        if tmp is not None and tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+        if not out.exists():
+            for folder in reversed(made):
+                try:
+                    folder.rmdir()
+                except OSError:
+                    break

@@ -35,7 +35,7 @@ sys.path.insert(0, str(REPO))
 from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, CheckpointError, load_config,  # noqa: E402
                                  load_weights, save_model)
 from mld_core.fileio import make_parents  # noqa: E402
-from mld_core.inputs import InputError, check_output_folder  # noqa: E402
+from mld_core.inputs import InputError, check_output_folder, parse_json  # noqa: E402
 from mld_core.models.denoiser import LatentDenoiser  # noqa: E402
 from mld_core.models.vae import MotionVAE, take_decoder  # noqa: E402
 from mld_core.training.draft import DRAFT_WEIGHTS, install_draft  # noqa: E402
@@ -159,6 +159,10 @@ def main(argv=None) -> int:
     ap.add_argument("--vae-decoder", type=Path, default=None, help="a VAE run whose decoder side replaces the run's "
                     "(its encoder must be the run's)")
     ap.add_argument("--hardware", default="two CPU cores", help="what the card says it was trained on")
+    ap.add_argument("--text-encoder", default=None, metavar="JSON",
+                    help="the text encoder the exported config names (default: the run's), e.g. "
+                         "'{\"kind\": \"minilm\"}' for a run trained with a copy cut to its captions "
+                         "(mld_core.models.vocab_subset)")
     args = ap.parse_args(argv)
     try:
         config = load_config(args.run)
@@ -175,6 +179,11 @@ def main(argv=None) -> int:
         check_output_folder(args.out, "--out", staged_beside=True)
         metrics = read_notes(args.notes)
         check_data(args.data)
+        if args.text_encoder is not None:
+            spec = parse_json(args.text_encoder, "--text-encoder")
+            if not isinstance(spec, dict) or not isinstance(spec.get("kind"), str):
+                raise InputError("--text-encoder must be a JSON object with a \"kind\", e.g. {\"kind\": \"minilm\"}")
+            config.text_encoder = spec
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

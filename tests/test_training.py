@@ -692,3 +692,37 @@ def test_decoder_only_vae_fine_tune_keeps_the_encoder_and_swaps_in_under_the_den
     everything = load_file(str(whole / "vae.safetensors"))
     assert {k.split(".")[0] for k in start if not torch.equal(start[k].float(), everything[k].float())} \
         >= set(ENCODER_MODULES)
+
+
+def test_vae_resumed_with_another_selection_starts_its_best_afresh(folder, tmp_path):
+    """The best checkpoint's number is the metric its sitting selects by: a sitting that selects by the sum of the
+    root-relative and global errors does not compare it with a root-relative best, and keeps its own best."""
+    run = tmp_path / "vae"
+    args = ["train", "vae", "--data", str(folder), "--out", str(run), "--threads", "1", "--lr", "3e-3"]
+    assert main(args + ["--steps", "20", "--config", json.dumps(TINY_VAE)]) == 0
+    first = (run / "vae.safetensors").read_bytes()
+    assert main(args + ["--steps", "30", "--resume", "--config",
+                        json.dumps({**TINY_VAE, "select_by": "mpjpe_sum"})]) == 0
+    log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert log[-1]["step"] == 30 and log[-1]["val_global_mpjpe_mm"] > 0
+    assert (run / "vae.safetensors").read_bytes() != first  # step 30 is the new sitting's first (and best) record
+    assert json.loads((run / "config.json").read_text())["provenance"]["vae_steps"] == 30
+
+
+def test_action_conditioned_denoiser_trains_and_generates_each_label(folder, tmp_path):
+    """`train denoiser --cond action` learns one class per label of actions.json (the CLI does not need the count)
+    and `generate --action` makes a take of a label."""
+    vae_run = tmp_path / "vae"
+    assert main(["train", "vae", "--data", str(folder), "--out", str(vae_run), "--steps", "10", "--threads", "1",
+                 "--config", json.dumps(TINY_VAE)]) == 0
+    den = {k: v for k, v in TINY_DEN.items() if k != "text_encoder"}
+    run = tmp_path / "act"
+    assert main(["train", "denoiser", "--data", str(folder), "--vae", str(vae_run), "--out", str(run), "--cond",
+                 "action", "--steps", "20", "--threads", "1", "--config", json.dumps(den)]) == 0
+    config = json.loads((run / "config.json").read_text())
+    assert config["denoiser"]["cond"] == "action" and config["denoiser"]["num_actions"] == 2
+    assert config["actions"] == ["a", "b"]
+    out = tmp_path / "take.npz"
+    assert main(["generate", "--model", str(run), "--action", "b", "--seconds", "1.5", "--steps", "3",
+                 "--out", str(out)]) == 0
+    assert np.isfinite(np.load(out)["joints"]).all()

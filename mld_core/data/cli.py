@@ -74,6 +74,21 @@ def register(groups) -> None:
     m.add_argument("sources", nargs="+", type=Path, metavar="DIR", help="two or more prepared folders")
     m.add_argument("--out", required=True, type=Path, metavar="DIR", help="a new (or empty) folder")
     m.set_defaults(func=_run_merge)
+    pk = groups["data"].add_parser("pack", help="one small file of a prepared folder, to carry to another machine",
+                                   description="Write the joints (to a millimetre), captions, split lists and Mean/Std "
+                                   "of a prepared folder's splits to one file (mirrored copies are made again when "
+                                   "unpacking). `data unpack` rebuilds a folder to train on from it.")
+    pk.add_argument("folder", type=Path, metavar="DIR", help="a prepared or merged folder (with new_joints/)")
+    pk.add_argument("--out", required=True, type=Path, metavar="FILE", help="the pack file to write (.npz)")
+    pk.add_argument("--splits", default="train,val", help="comma-separated splits to pack (default train,val)")
+    pk.set_defaults(func=_run_pack)
+    up = groups["data"].add_parser("unpack", help="a folder to train on, from a `data pack` file",
+                                   description="Rebuild a HumanML3D-format folder from a pack: features computed from "
+                                   "the packed joints, mirrored copies made again.")
+    up.add_argument("pack", type=Path, metavar="FILE", help="a file written by `data pack`")
+    up.add_argument("--out", required=True, type=Path, metavar="DIR", help="a new (or empty) folder")
+    up.add_argument("--workers", type=int, default=2, help="processes computing features (default 2)")
+    up.set_defaults(func=_run_unpack)
 
 
 def _run_summary(args) -> int:
@@ -86,6 +101,33 @@ def _run_summary(args) -> int:
         print(summary_table(folder_summary(args.folder)), end="")
     except (OSError, ValueError, UnicodeDecodeError) as exc:
         raise UsageError(f"cannot read {args.folder}: {str(exc).splitlines()[0]}") from None
+    return 0
+
+
+def _run_pack(args) -> int:
+    from ..cli import UsageError
+    from ..inputs import InputError
+    from .pack import pack
+
+    try:
+        done = pack(args.folder, args.out, tuple(s.strip() for s in args.splits.split(",") if s.strip()))
+    except InputError as exc:
+        raise UsageError(str(exc)) from None
+    print(f"wrote {done['out']}: {done['clips']} clips (+{done['mirrored']} mirrored, made again when unpacking), "
+          f"{done['bytes'] / 1e6:.1f} MB")
+    return 0
+
+
+def _run_unpack(args) -> int:
+    from ..cli import UsageError
+    from ..inputs import InputError, int_in_range
+    from .pack import unpack
+
+    try:
+        done = unpack(args.pack, args.out, int_in_range(args.workers, "--workers", 1, 256))
+    except InputError as exc:
+        raise UsageError(str(exc)) from None
+    print(f"wrote {done['out']}: {done['clips']} clips + {done['mirrored']} mirrored, {done['frames']} feature frames")
     return 0
 
 

@@ -15,13 +15,12 @@ from __future__ import annotations
 
 import json
 import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ..fileio import claim_folder
+from ..fileio import build_new_folder
 from ..inputs import InputError, check_output_folder, read_utf8
 from ..motion import features as F
 from ..motion.skeleton import FEATURE_DIM
@@ -209,37 +208,9 @@ def merge(sources, out) -> dict:
     mean, std = F.mean_std([f for folder in folders for f in folder.train])
     for folder in folders:
         folder.train = []
-    _write_in_place(out, rows, folders, mean, std)
+    build_new_folder(out, lambda tmp: _write(tmp, rows, folders, mean, std))
     return {"out": str(out), "splits": {sp: sum(1 for r in rows if r[1] == sp) for sp in SPLITS},
             "sources": {str(s.path): sum(1 for r in rows if r[0] is s) for s in folders}}
-
-
-def _write_in_place(out: Path, rows, folders: list[Source], mean, std) -> None:
-    """Build the folder under a temporary name beside ``out``, then claim ``out`` (still new or empty: else another
-    run wrote it meanwhile); on any failure nothing is left, not even the parent folders this made."""
-    made = [p for p in reversed(out.parents) if not p.exists()]
-    tmp = None
-    try:
-        for folder in made:
-            folder.mkdir(exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
-        _write(tmp, rows, folders, mean, std)
-        try:
-            claim_folder(tmp, out)
-        except FileExistsError:
-            raise InputError(f"--out {out} was written by another run meanwhile; this run kept nothing - choose "
-                             "another folder") from None
-    except OSError as exc:
-        raise InputError(f"cannot write --out {out}: {exc.strerror or exc}; choose another folder") from None
-    finally:
-        if tmp is not None and tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
-        if not out.exists():
-            for folder in reversed(made):
-                try:
-                    folder.rmdir()
-                except OSError:
-                    break
 
 
 def _write(tmp: Path, rows, folders: list[Source], mean, std) -> None:

@@ -328,7 +328,7 @@ def _train(cfg, model_config, root, out, resume, text_encoder, data, progress, l
     if text_encoder is None:
         from mld_core.models.text_encoder import load_text_encoder
 
-        text_encoder = load_text_encoder(dict(model_config.text_encoder))
+        text_encoder = load_text_encoder(dict(model_config.text_encoder)).to(rt.device)
     texts = all_caption_texts(train + val + test, min_frames=cfg.min_frames, fps=model_config.fps)
     rt.on_main(lambda: TextVectors.build(texts, text_encoder, out / TEXT_CACHE, progress=progress))  # cached by rank 0
     vectors = TextVectors.build(texts, text_encoder, out / TEXT_CACHE, progress=progress)

@@ -199,7 +199,8 @@ def _denoiser_config(args, over: dict):
     from mld_core.models.transformer import TransformerConfig
     from mld_core.training.denoiser import DenoiserTrainConfig
 
-    den = DenoiserConfig(**{"cond": args.cond, **over.pop("denoiser", {})})
+    # an action-conditioned denoiser learns one class per label of the data's actions.json: the trainer counts them
+    den = DenoiserConfig(**{"cond": args.cond, "num_actions": int(args.cond == "action"), **over.pop("denoiser", {})})
     if args.layers or args.no_skip or args.cross_attention:
         den.transformer = TransformerConfig(**{**den.transformer.to_dict(), "layers": args.layers or den.transformer.layers,
                                                "skip": not args.no_skip, "cross_attention": args.cross_attention})

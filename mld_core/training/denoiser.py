@@ -168,9 +168,9 @@ def embed_captions(encoder, captions: list[str], max_tokens: int, batch: int = 6
         t = torch.zeros(emb.tokens.shape[0], max_tokens, emb.tokens.shape[-1], dtype=torch.float16)
         m = torch.zeros(emb.tokens.shape[0], max_tokens, dtype=torch.bool)
         L = min(max_tokens, emb.tokens.shape[1])
-        t[:, :L] = emb.tokens[:, :L].half()
-        m[:, :L] = emb.mask[:, :L]
-        pooled.append(emb.pooled.float())
+        t[:, :L] = emb.tokens[:, :L].half().cpu()
+        m[:, :L] = emb.mask[:, :L].cpu()
+        pooled.append(emb.pooled.float().cpu())
         tokens.append(t)
         mask.append(m)
     return {"pooled": torch.cat(pooled), "tokens": torch.cat(tokens), "mask": torch.cat(mask)}
@@ -280,7 +280,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     if cfg.cond == "text":
         from mld_core.models.text_encoder import TextEmbedding, load_text_encoder
 
-        encoder = load_text_encoder(cfg.text_encoder)
+        encoder = load_text_encoder(cfg.text_encoder).to(rt.device)  # captions are encoded where training runs
         dcfg.text_dim = encoder.dim
 
         def make_text():

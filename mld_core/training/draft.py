@@ -177,7 +177,7 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
         _cached(out / LATENT_CACHE, lambda: encode_latents(vae.to(rt.device), units, mean, std, cfg.crops_per_clip,
                                                            base.min_frames, base.max_frames, cfg.seed))
         cached_caption_embeddings(out / TEXT_CACHE, captions, lambda: embed_captions(
-            load_text_encoder(base.text_encoder), captions, base.denoiser.max_text_tokens))
+            load_text_encoder(base.text_encoder).to(rt.device), captions, base.denoiser.max_text_tokens))
 
     rt.on_main(make_caches)
     lat = _cached(out / LATENT_CACHE, lambda: None)  # as rank 0 wrote them

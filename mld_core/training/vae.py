@@ -289,7 +289,8 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
     weights = weights.to(rt.device) if weights is not None else None
     sampler = CropSampler(train, mean, std, cfg.min_frames, cfg.max_frames, cfg.frames_per_batch,
                           cfg.balance_power, cfg.clip_start_share, rt.device)
-    best = extra.get("best_mpjpe_mm", float("inf"))
+    # the best so far, measured the way this sitting selects (a sitting that selects otherwise starts afresh)
+    best = extra.get("best_mpjpe_mm", float("inf")) if extra.get("select_by", "mpjpe") == cfg.select_by else float("inf")
     actions = sorted({c.action for c in train if c.action})
     if rt.is_main:
         save_json(out / "train_config.json", {**asdict(cfg), "stage": "vae",
@@ -338,7 +339,7 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
                 config.provenance["vae_steps"] = step
                 save_weights(out / "vae.safetensors", vae)
                 save_json(out / "config.json", config.to_dict())
-            save_train_state(out, vae, opt, step, {"best_mpjpe_mm": best})
+            save_train_state(out, vae, opt, step, {"best_mpjpe_mm": best, "select_by": cfg.select_by})
     bar.close()
     if rt.is_main:
         log.close()

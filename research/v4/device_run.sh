@@ -1,0 +1,79 @@
+#!/usr/bin/env bash
+# A GPU sitting for model v4 (research/v4/README.md): the VAE trained on the CPU is fine-tuned on the GPU with a
+# large batch, then three denoisers learn its latents side by side, all from files carried to a machine without
+# internet.
+#
+#   research/v4/device_run.sh PACK TEXT_ENCODER_DIR VAE_DIR OUT [VAE_MINUTES] [DENOISER_MINUTES] [DEVICE]
+#
+# PACK and TEXT_ENCODER_DIR: scripts/pack_for_device.py's data.npz and minilm/; VAE_DIR: a model folder holding the
+# VAE to continue (config.json, vae.safetensors). The denoisers: a, the bundled model's architecture; b, 9 layers
+# (MLD's depth); c, conditioned on action labels (`generate --action`). OUT gets the exported fp16 models and every
+# log as one tar in parts of 15 MB (scripts and logs first, so a sitting cut short still brings back what ran).
+set -uo pipefail
+pack="${1:?pack file}"; text="${2:?text encoder folder}"; vae_init="${3:?VAE folder}"; out="${4:?output folder}"
+vae_minutes="${5:-2.8}"; den_minutes="${6:-3.8}"; device="${7:-cuda}"
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
+cd "$here"
+export PYTHONPATH="$here${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
+PY="${PYTHON:-python3}"
+work=runs/v4
+data=runs/v4_data
+mkdir -p "$work" "$out"
+log() { echo "[$(date +%H:%M:%S)] $*"; }
+nvidia-smi -L 2>/dev/null; "$PY" -c "import torch; print('torch', torch.__version__, torch.cuda.is_available())"
+
+# 1. The data: a folder to train on, rebuilt from the pack.
+log "unpacking $pack"
+[ -f "$data/Mean.npy" ] || "$PY" -m mld_core data unpack "$pack" --out "$data" --workers "$(nproc)" || exit 1
+
+# train STAGE NAME ARGS...: one run, again in float32 if mixed precision fails on this GPU.
+train() {
+    local stage="$1" name="$2"
+    shift 2
+    "$PY" -m mld_core train "$stage" --data "$data" --out "$work/$name" --device "$device" "$@" \
+        > "$work/$name.log" 2>&1 && return 0
+    log "$name failed in mixed precision, again in float32"; tail -3 "$work/$name.log"
+    rm -rf "${work:?}/$name"
+    "$PY" -m mld_core train "$stage" --data "$data" --out "$work/$name" --device "$device" --fp32 "$@" \
+        > "$work/${name}_fp32.log" 2>&1 || { log "$name failed"; tail -5 "$work/${name}_fp32.log"; return 1; }
+}
+
+# 2. The VAE, fine-tuned with a GPU's batch (no VAE minutes: the carried one as it is).
+vae="$vae_init"
+if "$PY" -c "import sys; sys.exit(0 if float('$vae_minutes') > 0 else 1)"; then
+    log "VAE: $vae_minutes minutes from $vae_init"
+    train vae vae --init "$vae_init" --minutes "$vae_minutes" --config research/v4/vae_gpu.json && vae="$work/vae"
+fi
+
+# 3. Three denoisers on that VAE's latents, side by side, each exported in fp16 when done.
+denoiser() {  # denoiser NAME CONFIG COND
+    local name="$1" config="$2" cond="$3"
+    sed "s#device_pack/minilm#$text#" "$config" > "$work/$name.json"
+    log "$name: denoiser"
+    train denoiser "$name" --vae "$vae" --cond "$cond" --minutes "$den_minutes" --config "$work/$name.json" || return 1
+    local encoder=()
+    [ "$cond" = text ] && encoder=(--text-encoder '{"kind": "minilm", "path": null}')
+    "$PY" scripts/export_model.py "$work/$name" --out "$work/export_$name" --overwrite --model-id "mld-v4-$name" \
+        --hardware "one $("$PY" -c 'import torch; print(torch.cuda.get_device_name(0))' 2>/dev/null || echo CPU)" \
+        "${encoder[@]}" > "$work/export_$name.log" 2>&1 || { log "$name: export failed"; tail -3 "$work/export_$name.log"; }
+    log "$name: done"
+}
+denoiser den_a research/v4/denoiser_a.json text &
+denoiser den_b research/v4/denoiser_b.json text &
+denoiser den_c research/v4/denoiser_action.json action &
+wait
+
+# 4. What comes back: the exports, the VAE in fp16 and the logs (train states stay: too large to bring back).
+for run in vae den_a den_b den_c; do
+    for f in log.jsonl train_config.json config.json; do
+        [ -f "$work/$run/$f" ] && cp "$work/$run/$f" "$work/${run}_$f"
+    done
+done
+[ -f "$work/vae/vae.safetensors" ] && "$PY" -c "
+import sys
+from safetensors.torch import load_file, save_file
+d = load_file(sys.argv[1]); save_file({k: v.half() if v.is_floating_point() else v for k, v in d.items()}, sys.argv[2])
+" "$work/vae/vae.safetensors" "$work/vae_fp16.safetensors"
+tar cf - -C "$work" --exclude=vae --exclude='den_?' --exclude=coverage_index.npz --exclude='export_*/vae.safetensors' . | split -b 15M - "$out/v4.tar.part-"
+ls -la "$out"
+log "done"
