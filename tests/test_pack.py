@@ -100,6 +100,10 @@ def test_bad_input_is_refused_and_nothing_is_left(tmp_path):
         pack(src, tmp_path / "p.npz", ("train", "dev"))
     with pytest.raises(InputError, match="is a folder"):
         pack(src, src)
+    mean = (src / "Mean.npy").read_bytes()
+    with pytest.raises(InputError, match="inside the folder being packed"):
+        pack(src, src / "Mean.npy")
+    assert (src / "Mean.npy").read_bytes() == mean
     (src / "new_joints" / "b.npy").unlink()
     with pytest.raises(InputError, match="b is listed"):
         pack(src, tmp_path / "p.npz")

@@ -81,6 +81,8 @@ def pack(folder, out, splits=("train", "val")) -> dict:
         raise InputError(f"--splits: {', '.join(unknown) or 'none given'}; choose from {', '.join(SPLITS)}")
     if out.is_dir():
         raise InputError(f"--out {out} is a folder; name the pack file to write")
+    if out.resolve().is_relative_to(folder.resolve()):
+        raise InputError(f"--out {out} lies inside the folder being packed; write the pack elsewhere")
     lists = {s: _split_ids(folder, s) for s in splits}
     ids, mirrored = [], []
     for split in splits:
