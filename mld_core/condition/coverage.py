@@ -11,7 +11,8 @@ the prompt to its nearest training caption), a verdict and the 3 nearest caption
 
 Side words (left/right) and style words (tired, happy, elderly, ...) are removed from prompt and captions alike
 before they are encoded (:func:`normalise`), so they can never flip a verdict: "a tired person jumps" scores
-exactly as "a person jumps". The thresholds are calibrated on two hand-written prompt sets
+exactly as "a person jumps"; a command without a subject is given one ("jump" is compared as "a person jump"), so
+it scores as its sentence does. The thresholds are calibrated on two hand-written prompt sets
 (``research/coverage_calibration.py`` prints the table; docs/quality.md has the numbers).
 
 Build an index with :func:`build_index` (training and ``scripts/export_model.py`` do) or from a data folder with
@@ -51,13 +52,21 @@ weary wearily exhausted sleepy worn lazy lazily theatrical theatrically exaggera
 heavy heavily lumbering relaxed calm calmly excited excitedly slowly quickly briskly stiffly lightly strong
 """.split())
 SUBJECT_WORDS = frozenset("a an the person someone man woman".split())  # only for listing distinct neighbours
+# Words a sentence about a person starts with; a text that starts with none of them is a command ("crawl", "squat
+# down") and is given the subject every training caption has, so a command scores as its sentence does.
+SENTENCE_STARTS = frozenset("""
+a an the person someone somebody man woman he she they people human figure character actor dancer guy girl boy child
+kid his her their this
+""".split())
 _WORD = re.compile(r"[a-z0-9]+(?:'[a-z]+)?")
 
 
 def normalise(text: str) -> str:
-    """Lower case, punctuation dropped, side and style words removed ("A tired man waves his LEFT hand." ->
-    "a man waves his hand")."""
+    """Lower case, punctuation dropped, side and style words removed, a command given a subject ("A tired man waves
+    his LEFT hand." -> "a man waves his hand"; "Crawl!" -> "a person crawl")."""
     words = [w for w in _WORD.findall(str(text).lower()) if w not in SIDE_WORDS and w not in STYLE_WORDS]
+    if words and words[0] not in SENTENCE_STARTS:
+        words = ["a", "person"] + words
     return " ".join(words)
 
 

@@ -1,5 +1,6 @@
 """Does prompt coverage know the CMU verbs and still flag motions no training data holds? Per model: the verdict of
-the vocabulary benchmark's command and user prompts (scripts/vocabulary.py) and of research/v4/absent_motions.txt.
+the vocabulary benchmark's command and user prompts (scripts/vocabulary.py) and of research/v4/absent_motions.txt
+(flagged: unknown or near, the target of research/coverage_calibration.py).
 
     python research/v4/coverage_verbs.py MODEL [MODEL ...]
 """
@@ -25,11 +26,16 @@ def main() -> int:
         pipe = MLDPipeline.from_pretrained(model)
         k = [c.verdict for c in pipe.coverage(known)]
         a = [c.verdict for c in pipe.coverage(absent)]
-        print(f"{model}: known verbs flagged unknown {k.count('unknown')}/{len(k)} "
-              f"(near {k.count('near')}), absent flagged unknown {a.count('unknown')}/{len(a)} (near {a.count('near')})")
+        flagged = len(a) - a.count("known")
+        print(f"{model}: known verbs flagged unknown {k.count('unknown')}/{len(k)} (near {k.count('near')}); "
+              f"absent motions flagged {flagged}/{len(a)} = {flagged / len(a):.2f} "
+              f"(unknown {a.count('unknown')}, near {a.count('near')})")
         for prompt, verdict in zip(known, k):
             if verdict == "unknown":
-                print(f"  unknown: {prompt}")
+                print(f"  known verb called unknown: {prompt}")
+        for prompt, verdict in zip(absent, a):
+            if verdict == "known":
+                print(f"  absent motion called known: {prompt}")
     return 0
 
 
