@@ -54,9 +54,8 @@ heavy heavily lumbering relaxed calm calmly excited excitedly slowly quickly bri
 SUBJECT_WORDS = frozenset("a an the person someone man woman".split())  # only for listing distinct neighbours
 # Words a sentence about a person starts with; a text that starts with none of them is a command ("crawl", "squat
 # down") and is given the subject every training caption has, so a command scores as its sentence does.
-SENTENCE_STARTS = frozenset("""
-a an the person someone somebody man woman he she they people human figure character actor dancer guy girl boy child
-kid his her their this
+SENTENCE_STARTS = SUBJECT_WORDS | frozenset("""
+somebody he she they people human figure character actor dancer guy girl boy child kid his her their this
 """.split())
 _WORD = re.compile(r"[a-z0-9]+(?:'[a-z]+)?")
 
