@@ -110,6 +110,35 @@ def test_vae_shapes_and_padding_never_changes_valid_frames(n):
     assert torch.all(out[1, 17:] == 0)
 
 
+
+def test_grown_latent_decodes_copied_tokens_as_the_old_latent_and_keeps_every_other_weight():
+    """grow_latent(n -> m, m a multiple of n): the decoder reads a latent whose token i is the old token i mod n
+    exactly as it read the old latent (noise 0); the encoder's tokens i >= n start as copies (mu and log-variance alike); every other weight
+    is the old model's; the noise only moves the copies; a smaller latent is refused."""
+    from mld_core.models.vae import grow_latent
+
+    vae = tiny_vae(n=2)
+    torch.manual_seed(3)
+    x, lengths = torch.randn(2, 30, 263), torch.tensor([30, 21])
+    grown = grow_latent(vae, 6)
+    assert grown.config.latent_tokens == 6 and vae.config.latent_tokens == 2
+    with torch.no_grad():
+        z, _ = vae.encode(x, lengths)
+        tiled = z[:, [0, 1, 0, 1, 0, 1]]  # (B, 6, d)
+        assert torch.allclose(grown.decode(tiled, lengths), vae.decode(z, lengths), atol=1e-5)
+        mu, logvar = grown.encode(x, lengths)
+    assert mu.shape == logvar.shape == (2, 6, 32)
+    assert torch.equal(mu[:, 4], mu[:, 0]) and torch.equal(logvar[:, 3], logvar[:, 1])  # copies, before training
+    old, new = vae.state_dict(), grown.state_dict()
+    assert all(torch.equal(old[k], new[k]) for k in old if k not in ("distribution_tokens", "latent_positions"))
+    noisy = grow_latent(vae, 6, noise=0.01, seed=1).state_dict()
+    assert torch.equal(noisy["latent_positions"][:2], old["latent_positions"])
+    assert 0 < (noisy["latent_positions"][2:] - new["latent_positions"][2:]).abs().max() < 0.1
+    assert torch.equal(noisy["distribution_tokens"][:2], old["distribution_tokens"][:2])  # the old mu tokens
+    assert torch.equal(noisy["distribution_tokens"][6:8], old["distribution_tokens"][2:])  # the old log-variance ones
+    with pytest.raises(ValueError, match="cannot be grown"):
+        grow_latent(vae, 1)
+
 def test_vae_rejects_too_long_input():
     vae = tiny_vae()
     with pytest.raises(ValueError, match="max_frames"):

@@ -726,3 +726,167 @@ def test_action_conditioned_denoiser_trains_and_generates_each_label(folder, tmp
     assert main(["generate", "--model", str(run), "--action", "b", "--seconds", "1.5", "--steps", "3",
                  "--out", str(out)]) == 0
     assert np.isfinite(np.load(out)["joints"]).all()
+
+
+def test_vae_fine_tune_takes_a_new_kl_weight_and_keeps_it_on_resume(tmp_path, capsys):
+    """kl_weight overrides the --init model's KL weight (the fine-tuned folder's config says so) and the KL term of
+    the loss moves with it; --resume keeps the first sitting's weight; a weight outside 0..1 is refused in one line."""
+    from mld_core.testing import tiny_model
+    from mld_core.training.vae import VAETrainConfig
+    from test_reliability import _h3d_folder
+
+    model = tiny_model(tmp_path / "tiny")
+    data = _h3d_folder(tmp_path / "data")
+    before = json.loads((model / "config.json").read_text())["vae"]["kl_weight"]
+
+    def train(run, steps, settings, *extra):
+        return main(["train", "vae", "--data", str(data), "--init", str(model), "--out", str(run), "--threads", "1",
+                     "--steps", str(steps), "--config", json.dumps({"val_every": 100, "min_frames": 16, **settings}),
+                     *extra])
+
+    losses = {}
+    for name, settings in (("kept", {}), ("loosened", {"kl_weight": 0.0})):
+        assert train(tmp_path / name, 1, settings) == 0
+        record = json.loads((tmp_path / name / "log.jsonl").read_text().splitlines()[-1])
+        losses[name] = (record["loss"], record["mse"], record["kl"])
+        saved = json.loads((tmp_path / name / "config.json").read_text())["vae"]["kl_weight"]
+        assert saved == (before if name == "kept" else 0.0)
+    loss, mse, kl = losses["kept"]
+    assert kl > 0 and loss == pytest.approx(mse + before * kl, rel=1e-5)
+    loss, mse, _ = losses["loosened"]
+    assert loss == pytest.approx(mse, rel=1e-6)  # the same first batch, no KL term
+    assert train(tmp_path / "loosened", 2, {"kl_weight": 0.5}, "--resume") == 0
+    for name in ("config.json", "train_config.json"):
+        assert json.loads((tmp_path / "loosened" / name).read_text())["vae"]["kl_weight"] == 0.0
+    capsys.readouterr()
+    assert train(tmp_path / "bad", 1, {"kl_weight": 2.0}) == 2
+    assert "kl_weight must be between 0 and 1, got 2" in capsys.readouterr().err and not (tmp_path / "bad").exists()
+    with pytest.raises(ValueError, match="kl_weight"):
+        VAETrainConfig(kl_weight=float("nan"))
+
+
+def test_vae_latent_noise_scales_the_posterior_draw(tmp_path, monkeypatch):
+    """latent_noise scales the training draw z = mu + latent_noise * sigma * eps: 0 trains on mu itself, 1 (the
+    default) is the VAE's own sampling; outside 0..1 is refused."""
+    from mld_core.models.vae import MotionVAE
+    from mld_core.testing import tiny_model
+    from mld_core.training.vae import VAETrainConfig
+    from test_reliability import _h3d_folder
+
+    model = tiny_model(tmp_path / "tiny")
+    data = _h3d_folder(tmp_path / "data")
+    seen = []
+    forward = MotionVAE.forward
+
+    def recording(self, x, lengths, sample=True, noise=None):
+        seen.append(noise.detach().clone())
+        return forward(self, x, lengths, sample=sample, noise=noise)
+
+    monkeypatch.setattr(MotionVAE, "forward", recording)
+    draws = {}
+    for scale in (1.0, 0.25, 0.0):
+        seen.clear()
+        settings = {"val_every": 100, "min_frames": 16, "latent_noise": scale}
+        assert main(["train", "vae", "--data", str(data), "--init", str(model), "--out", str(tmp_path / f"run{scale}"),
+                     "--threads", "1", "--steps", "1", "--config", json.dumps(settings)]) == 0
+        draws[scale] = seen[0]
+    assert draws[1.0].std() > 0.5 and torch.allclose(draws[0.25], 0.25 * draws[1.0])  # the same eps, scaled
+    assert torch.count_nonzero(draws[0.0]) == 0
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValueError, match="latent_noise"):
+            VAETrainConfig(latent_noise=bad)
+
+
+def test_denoiser_fine_tune_renormalises_another_vaes_latents_when_asked(tmp_path):
+    """--init keeps the init model's latent normalisation (the latents it learned); renormalise_latents, for a
+    denoiser moved onto a retrained encoder, normalises the new latents afresh: their mean and 1/std."""
+    from safetensors.torch import load_file
+
+    from mld_core.testing import tiny_model
+    from mld_core.training.denoiser import LATENT_CACHE
+    from test_reliability import _h3d_folder
+
+    model = tiny_model(tmp_path / "tiny")
+    data = _h3d_folder(tmp_path / "data")
+    init = json.loads((model / "config.json").read_text())
+    encoder = init["text_encoder"]
+    saved = {}
+    for flag in (False, True):
+        run = tmp_path / f"run_{flag}"
+        settings = {"batch_size": 8, "text_encoder": encoder, "renormalise_latents": flag}
+        assert main(["train", "denoiser", "--data", str(data), "--vae", str(model), "--init", str(model), "--out",
+                     str(run), "--threads", "1", "--steps", "1", "--config", json.dumps(settings)]) == 0
+        config = json.loads((run / "config.json").read_text())
+        saved[flag] = (config["latent_mean"], config["latent_scale"])
+        mu = load_file(str(run / LATENT_CACHE))["mu"]
+    assert saved[False] == (init["latent_mean"], init["latent_scale"])
+    assert saved[True] == pytest.approx((float(mu.mean()), float(1.0 / mu.std())), rel=1e-6)
+    assert saved[True] != saved[False]
+
+
+def test_vae_fine_tune_grows_the_init_latent_and_resumes_at_its_new_shape(tmp_path, capsys):
+    """grow_latent_tokens: the run's VAE has the grown latent (config and weights), its first validation is near the
+    init model's (the copies decode as the old latent), --resume continues at that shape; without --init it is
+    refused in one line, leaving no folder."""
+    from safetensors.torch import load_file
+
+    from mld_core.testing import tiny_model
+    from test_reliability import _h3d_folder
+
+    model = tiny_model(tmp_path / "tiny")
+    data = _h3d_folder(tmp_path / "data")
+    before = json.loads((model / "config.json").read_text())["vae"]["latent_tokens"]
+
+    def train(run, steps, settings, *extra, init=True):
+        return main(["train", "vae", "--data", str(data), "--out", str(run), "--threads", "1", "--steps", str(steps),
+                     *(["--init", str(model)] if init else []), "--lr", "1e-9",
+                     "--config", json.dumps({"val_every": 1, "min_frames": 16, **settings}), *extra])
+
+    assert train(tmp_path / "same", 1, {}) == 0
+    assert train(tmp_path / "grown", 1, {"grow_latent_tokens": before + 3}) == 0
+    config = json.loads((tmp_path / "grown" / "config.json").read_text())
+    assert config["vae"]["latent_tokens"] == before + 3
+    weights = load_file(str(tmp_path / "grown" / "vae.safetensors"))
+    assert weights["latent_positions"].shape[0] == before + 3
+    assert weights["distribution_tokens"].shape[0] == 2 * (before + 3)
+    same, grown = (json.loads((tmp_path / n / "log.jsonl").read_text().splitlines()[0]) for n in ("same", "grown"))
+    assert grown["val_mpjpe_mm"] == pytest.approx(same["val_mpjpe_mm"], rel=0.2)
+    assert train(tmp_path / "grown", 2, {"grow_latent_tokens": before + 3}, "--resume") == 0
+    assert json.loads((tmp_path / "grown" / "train_config.json").read_text())["vae"]["latent_tokens"] == before + 3
+    capsys.readouterr()
+    assert train(tmp_path / "bad", 1, {"grow_latent_tokens": 4}, init=False) == 2
+    assert "grow_latent_tokens grows the latent of the --init model" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
+
+
+def test_denoiser_fine_tune_grows_onto_a_grown_vae_and_generates(tmp_path):
+    """--init on a VAE whose latent was grown (n -> 2n tokens): the denoiser's latent positions grow the same way
+    (copies of the old ones, a little noise), every other weight starts as the init model's, and the run
+    generates takes of the new latent's shape."""
+    from safetensors.torch import load_file
+
+    from mld_core.pipeline import MLDPipeline
+    from mld_core.testing import tiny_model
+    from test_reliability import _h3d_folder
+
+    model = tiny_model(tmp_path / "tiny")
+    data = _h3d_folder(tmp_path / "data")
+    init = json.loads((model / "config.json").read_text())
+    n = init["vae"]["latent_tokens"]
+    grown_vae = tmp_path / "vae"
+    assert main(["train", "vae", "--data", str(data), "--init", str(model), "--out", str(grown_vae), "--threads", "1",
+                 "--steps", "1", "--config", json.dumps({"min_frames": 16, "grow_latent_tokens": 2 * n})]) == 0
+    run = tmp_path / "run"
+    settings = {"batch_size": 8, "text_encoder": init["text_encoder"], "renormalise_latents": True}
+    assert main(["train", "denoiser", "--data", str(data), "--vae", str(grown_vae), "--init", str(model), "--out",
+                 str(run), "--threads", "1", "--steps", "1", "--lr", "1e-9", "--config", json.dumps(settings)]) == 0
+    config = json.loads((run / "config.json").read_text())
+    assert config["denoiser"]["latent_tokens"] == config["vae"]["latent_tokens"] == 2 * n
+    old, new = load_file(str(model / "denoiser.safetensors")), load_file(str(run / "denoiser.safetensors"))
+    old_positions, new_positions = old["positions"].float(), new["positions"].float()
+    assert new_positions.shape[0] == old_positions.shape[0] + n
+    assert torch.allclose(new_positions[-2 * n:-n], old_positions[-n:], atol=1e-3)
+    assert torch.allclose(new_positions[-n:], old_positions[-n:], atol=0.05)  # the copies, with the growth noise
+    assert torch.allclose(new["latent_in.weight"].float(), old["latent_in.weight"].float(), atol=1e-3)
+    take = MLDPipeline.from_pretrained(run)(["a person walks"], seconds=1.0, num_inference_steps=2)
+    assert np.isfinite(take.joints).all() and take.joints.shape[0] == 1

@@ -196,3 +196,20 @@ class LatentDenoiser(nn.Module):
             seq = torch.cat([time[:, None], cond, latent], dim=1) + self.positions  # (B, 1 + C + n, d)
             out = self.transformer(seq)
         return self.latent_out(out[:, -cfg.latent_tokens:])
+
+
+def grow_latent(denoiser: LatentDenoiser, tokens: int, noise: float = 0.0, seed: int = 0) -> LatentDenoiser:
+    """A copy of ``denoiser`` for a latent grown to ``tokens`` tokens (models.vae.grow_latent): latent token i >= n
+    starts with the position of token i mod n, plus Gaussian ``noise``; every other weight is the old one's. A warm
+    start for fine-tuning on the grown VAE's latents, not an equal model: the other tokens attend to the copies too."""
+    n = denoiser.config.latent_tokens
+    if tokens < n:
+        raise ValueError(f"a latent of {n} tokens cannot be grown to {tokens}")
+    grown = LatentDenoiser(DenoiserConfig(**{**denoiser.config.to_dict(), "latent_tokens": tokens}))
+    state = denoiser.state_dict()
+    positions = state["positions"]  # (1 [+ C] + n, d): the latent tokens last
+    copied = positions[-n:][torch.arange(tokens) % n].clone()  # (tokens, d)
+    copied[n:] += noise * torch.randn(copied[n:].shape, generator=torch.Generator().manual_seed(seed))
+    state["positions"] = torch.cat([positions[:-n], copied])
+    grown.load_state_dict(state)
+    return grown

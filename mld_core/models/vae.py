@@ -7,6 +7,7 @@ Features are normalised (Mean/Std of the training folder) outside this module.
 
 The encoder side (ENCODER_MODULES) fixes the latents a denoiser learns; a decoder side trained on its own
 (``train vae`` with ``train_modules`` = DECODER_MODULES) can be swapped in under that denoiser (``take_decoder``).
+A trained latent grows to more tokens (``grow_latent``) for a fine-tune that needs more room in it.
 """
 
 from __future__ import annotations
@@ -130,3 +131,29 @@ def take_decoder(vae: MotionVAE, donor: MotionVAE) -> None:
         raise ValueError(f"the decoder's VAE has another encoder ({', '.join(changed)} differ): train it with "
                          f"train_modules {list(DECODER_MODULES)} from this model")
     vae.load_state_dict({k: theirs[k] if k.split(".")[0] in DECODER_MODULES else v for k, v in mine.items()})
+
+
+def grow_latent(vae: MotionVAE, tokens: int, noise: float = 0.0, seed: int = 0) -> MotionVAE:
+    """A copy of ``vae`` whose latent has ``tokens`` tokens instead of n: token i >= n starts as a copy of token
+    i mod n (its distribution tokens and decoder position), plus Gaussian ``noise`` so fine-tuning can tell them
+    apart. With noise 0 and ``tokens`` a multiple of n the decoder reads the copied latent exactly as the old one (each
+    key repeated equally often in cross-attention changes no average); the encoder's frames see the copies too, so
+    its latents move a little."""
+    n = vae.config.latent_tokens
+    if tokens < n:
+        raise ValueError(f"a latent of {n} tokens cannot be grown to {tokens}")
+    grown = MotionVAE(VAEConfig(**{**vae.config.to_dict(), "latent_tokens": tokens}))
+    state = vae.state_dict()
+    source = torch.arange(tokens) % n  # (tokens,): which old token each new one copies
+    gen = torch.Generator().manual_seed(seed)
+
+    def copied(rows: torch.Tensor) -> torch.Tensor:
+        out = rows[source].clone()  # (tokens, d)
+        out[n:] += noise * torch.randn(out[n:].shape, generator=gen)
+        return out
+
+    mu_tokens, logvar_tokens = state["distribution_tokens"][:n], state["distribution_tokens"][n:]
+    state["distribution_tokens"] = torch.cat([copied(mu_tokens), copied(logvar_tokens)])  # (2 * tokens, d)
+    state["latent_positions"] = copied(state["latent_positions"])
+    grown.load_state_dict(state)
+    return grown

@@ -28,14 +28,14 @@ from mld_core import inputs
 from mld_core.checkpoint import load_config, load_weights, save_json, save_weights
 from mld_core.condition.content_anchor import ContentAnchorConfig
 from mld_core.data.captions import reworded
-from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser
+from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser, grow_latent
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import DDPMScheduler
 from mld_core.training import distributed
 from mld_core.training.common import (Budget, balanced_weights, check_resumed_modules, checked_budget,
                                      checked_module_names, load_train_state, lr_factor, save_train_state, set_lr,
                                      setup_torch, trainable_parameters)
-from mld_core.training.vae import prepare_run_dir
+from mld_core.training.vae import GROWTH_NOISE, prepare_run_dir
 
 LATENT_CACHE = "latents.safetensors"
 TEXT_CACHE = "text_embeddings.safetensors"
@@ -62,6 +62,8 @@ class DenoiserTrainConfig:
     bf16: bool = False  # bfloat16 autocast for forward/backward (fp32 weights, optimiser and EMA)
     text_encoder: dict = field(default_factory=lambda: {"kind": "minilm", "path": None})
     init: str | None = None  # a model folder to continue from (fine-tuning): its denoiser and latent normalisation
+    # with --init on another VAE (its encoder retrained): normalise that VAE's latents afresh, not as the init model did
+    renormalise_latents: bool = False
     reworded_captions: int = 0  # extra versions of each caption in other words (subjects, synonyms) to train on
     reworded_turns: bool = False  # rewordings also say "turns" to a side with other verbs (captions.TURN_VERBS)
     reworded_sides: bool = False  # rewordings also name a side from the body: "to his / her left" (captions.reworded)
@@ -75,6 +77,7 @@ class DenoiserTrainConfig:
         self.reworded_captions = inputs.int_in_range(self.reworded_captions, "reworded_captions", 0, 20)
         self.reworded_turns = inputs.true_or_false(self.reworded_turns, "reworded_turns")
         self.reworded_sides = inputs.true_or_false(self.reworded_sides, "reworded_sides")
+        self.renormalise_latents = inputs.true_or_false(self.renormalise_latents, "renormalise_latents")
         self.train_modules = checked_module_names(self.train_modules)
         if isinstance(self.denoiser, dict):
             self.denoiser = DenoiserConfig(**self.denoiser)
@@ -225,6 +228,20 @@ class _DenoiserLoss(torch.nn.Module):
         return torch.nn.functional.mse_loss(den(z_t, t, cond, lengths).float(), noise)
 
 
+def initial_denoiser(init: Path, dcfg: DenoiserConfig, init_tokens: int, seed: int) -> LatentDenoiser:
+    """The --init model's denoiser for ``dcfg``; where the VAE's latent has more tokens than it denoises (a grown
+    latent, ``train vae`` with grow_latent_tokens), its latent positions grown the same way."""
+    if dcfg.latent_tokens == init_tokens:
+        denoiser = LatentDenoiser(dcfg)
+        load_weights(init / "denoiser.safetensors", denoiser)
+        return denoiser
+    if dcfg.latent_tokens < init_tokens:
+        raise ValueError(f"--init {init} denoises {init_tokens}-token latents; the VAE's have {dcfg.latent_tokens}")
+    old = LatentDenoiser(DenoiserConfig(**{**dcfg.to_dict(), "latent_tokens": init_tokens}))
+    load_weights(init / "denoiser.safetensors", old)
+    return grow_latent(old, dcfg.latent_tokens, noise=GROWTH_NOISE, seed=seed)
+
+
 def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     from mld_core.data.dataset import load_split
 
@@ -250,6 +267,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     if init is not None and init.denoiser is None:
         raise ValueError(f"--init {cfg.init} has no denoiser to continue from")
     dcfg = init.denoiser if init is not None else cfg.denoiser
+    init_tokens = dcfg.latent_tokens  # the --init denoiser's latent, grown below where the VAE's has more tokens
     dcfg.cond = cfg.cond
     dcfg.latent_tokens, dcfg.latent_dim, dcfg.max_frames = base.vae.latent_tokens, base.vae.latent_dim, base.max_frames
     if cfg.cond == "action":
@@ -268,7 +286,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     mu, lengths, unit_of = lat["mu"], lat["lengths"], lat["unit"]
     latent_mean = float(mu.mean())
     latent_scale = float(1.0 / mu.std())
-    if init is not None:  # the denoiser being continued learned latents normalised this way
+    if init is not None and not cfg.renormalise_latents:  # the denoiser being continued learned latents normalised so
         latent_mean, latent_scale = init.latent_mean, init.latent_scale
     z0_all = (mu - latent_mean) * latent_scale  # (N, n, d)
     texts_of_unit = with_reworded_captions(units, cfg.reworded_captions, cfg.seed, cfg.reworded_turns,
@@ -297,9 +315,10 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
                               for u in unit_of.tolist()])
 
     # 3. Model, EMA, optimiser, sampling weights.
-    denoiser = LatentDenoiser(dcfg)
     if init is not None and not resume:
-        load_weights(Path(cfg.init) / "denoiser.safetensors", denoiser)
+        denoiser = initial_denoiser(Path(cfg.init), dcfg, init_tokens, cfg.seed)
+    else:
+        denoiser = LatentDenoiser(dcfg)
     ema = copy.deepcopy(denoiser).requires_grad_(False)
     trained = trainable_parameters(denoiser, cfg.train_modules, "denoiser")
     denoiser.to(rt.device)

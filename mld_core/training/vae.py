@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from mld_core import inputs
 from mld_core.checkpoint import ModelConfig, load_config, load_weights, save_json, save_weights, skeleton_info
-from mld_core.models.vae import MotionVAE, VAEConfig
+from mld_core.models.vae import MotionVAE, VAEConfig, grow_latent
 from mld_core.motion import skeleton as sk
 from mld_core.motion.features import FOOT_CONTACT, ROOT_ROT_VEL, ROOT_Y, features_to_joints
 from mld_core.training import distributed
@@ -31,6 +31,7 @@ from mld_core.training.common import (Budget, balanced_weights, check_resumed_mo
 
 ROOT_CHANNELS = slice(ROOT_ROT_VEL.start, ROOT_Y.stop)  # yaw velocity, xz velocity (facing frame), root height
 HORIZONTAL = [0, 2]  # x and z of a joint position (y is up)
+GROWTH_NOISE = 0.003  # std of the noise on a grown latent's copied tokens (a trained token's entries: ~0.03)
 
 
 @dataclass
@@ -51,6 +52,15 @@ class VAETrainConfig:
     val_clips: int = 200
     bf16: bool = False  # bfloat16 autocast for forward/backward (fp32 weights and optimiser); ~2x on AVX512-BF16 CPUs
     init: str | None = None  # a model folder to continue from (fine-tuning): its VAE's config and weights
+    # the KL term's weight; None keeps the VAE's own (``vae.kl_weight``, or the --init model's). A lower weight lets the
+    # latent carry more (fast limb swings); a fine-tune that lowers it changes the latents a denoiser learned
+    kl_weight: float | None = None
+    # the scale of the posterior draw z = mu + latent_noise * sigma * eps during training: 1 is the VAE's own sampling;
+    # below 1 the decoder sees mu more sharply and learns to use more of the latent (0: a plain autoencoder on mu)
+    latent_noise: float = 1.0
+    # with --init: grow the init VAE's latent to this many tokens (models.vae.grow_latent: the new tokens start as
+    # noisy copies of its own); the grown latent needs a denoiser of its own shape
+    grow_latent_tokens: int | None = None
     # geometric terms (MDM, Tevet et al. 2023) on the decoded joints, metres; 0 turns a term off
     joint_weight: float = 0.0  # MSE of the global joints (includes the integrated root trajectory)
     velocity_weight: float = 0.0  # MSE of the joints' frame-to-frame velocity
@@ -78,6 +88,11 @@ class VAETrainConfig:
             raise ValueError(f"select_by must be 'mpjpe' or 'mpjpe_sum', got {self.select_by!r}")
         self.clip_start_share = inputs.number_in_range(self.clip_start_share, "clip_start_share", 0.0, 1.0)
         self.root_weight = inputs.number_in_range(self.root_weight, "root_weight", 1e-6, 1e6)
+        if self.kl_weight is not None:
+            self.kl_weight = inputs.number_in_range(self.kl_weight, "kl_weight", 0.0, 1.0)
+        self.latent_noise = inputs.number_in_range(self.latent_noise, "latent_noise", 0.0, 1.0)
+        if self.grow_latent_tokens is not None:
+            self.grow_latent_tokens = inputs.int_in_range(self.grow_latent_tokens, "grow_latent_tokens", 1, 64)
         self.train_modules = checked_module_names(self.train_modules)
 
 
@@ -263,8 +278,12 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
         if cfg.vae.feature_dim != int(mean.shape[0]):
             raise ValueError(f"--init {cfg.init} works on {cfg.vae.feature_dim}-d features, {cfg.data} has "
                              f"{int(mean.shape[0])}")
+    if cfg.grow_latent_tokens is not None and init is None:
+        raise ValueError("grow_latent_tokens grows the latent of the --init model; give --init MODEL")
     if resume and (out / "train_config.json").is_file():  # a resumed run keeps the architecture it started with
         cfg.vae = VAEConfig(**json.loads((out / "train_config.json").read_text())["vae"])
+    elif cfg.kl_weight is not None:  # a resumed run keeps the weight its first sitting trained with
+        cfg.vae.kl_weight = cfg.kl_weight
     cfg.vae.feature_dim = int(mean.shape[0])
     trainable_parameters(MotionVAE(cfg.vae), cfg.train_modules, "VAE")  # names checked before the slow steps
     if resume:
@@ -280,6 +299,9 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
     vae = MotionVAE(cfg.vae)
     if init is not None and not resume:
         load_weights(Path(cfg.init) / "vae.safetensors", vae)
+        if cfg.grow_latent_tokens is not None:
+            vae = grow_latent(vae, cfg.grow_latent_tokens, noise=GROWTH_NOISE, seed=cfg.seed)
+            cfg.vae = vae.config
     trained = trainable_parameters(vae, cfg.train_modules, "VAE")
     vae.to(rt.device)
     opt = torch.optim.AdamW(trained, lr=cfg.lr, weight_decay=0.0)
@@ -305,6 +327,7 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
         rng, gen = distributed.step_rng(cfg.seed, step)
         idx, starts, L = sampler.draw(rng)  # the whole batch, the same in every process
         noise = torch.randn(len(idx), cfg.vae.latent_tokens, cfg.vae.latent_dim, generator=gen)  # (B, n, d)
+        noise = noise * cfg.latent_noise
         mine = rt.rows(len(idx))  # this process's rows
         x = sampler.crops(idx[mine], starts[mine], L, rt.device)  # (b, L, F)
         lengths = torch.full((len(mine),), L, device=rt.device)
