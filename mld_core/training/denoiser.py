@@ -235,8 +235,6 @@ def initial_denoiser(init: Path, dcfg: DenoiserConfig, init_tokens: int, seed: i
         denoiser = LatentDenoiser(dcfg)
         load_weights(init / "denoiser.safetensors", denoiser)
         return denoiser
-    if dcfg.latent_tokens < init_tokens:
-        raise ValueError(f"--init {init} denoises {init_tokens}-token latents; the VAE's have {dcfg.latent_tokens}")
     old = LatentDenoiser(DenoiserConfig(**{**dcfg.to_dict(), "latent_tokens": init_tokens}))
     load_weights(init / "denoiser.safetensors", old)
     return grow_latent(old, dcfg.latent_tokens, noise=GROWTH_NOISE, seed=seed)
@@ -270,6 +268,8 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     init_tokens = dcfg.latent_tokens  # the --init denoiser's latent, grown below where the VAE's has more tokens
     dcfg.cond = cfg.cond
     dcfg.latent_tokens, dcfg.latent_dim, dcfg.max_frames = base.vae.latent_tokens, base.vae.latent_dim, base.max_frames
+    if init is not None and dcfg.latent_tokens < init_tokens:  # before the slow steps below
+        raise ValueError(f"--init {cfg.init} denoises {init_tokens}-token latents; the VAE's have {dcfg.latent_tokens}")
     if cfg.cond == "action":
         dcfg.num_actions = len(actions)
     trainable_parameters(LatentDenoiser(dcfg), cfg.train_modules, "denoiser")  # names checked before the slow steps
