@@ -3,7 +3,7 @@ inverted, stand up, climb, kick, throw), prompts worded three ways, scored by th
 against real CMU motion's pass rate of the same check.
 
     python scripts/vocabulary.py --data DIR [--model DIR] [--seeds 8] [--seconds 5] [--threads 2] [--json FILE]
-        [--verbs jump,crawl,...] [--vae-recon]
+        [--verbs jump,crawl,...] [--vae-recon] [--split test|val|train]
 
 DIR is a folder written by ``python -m mld_core data prepare cmu-joints``. The three wordings per verb:
   caption: test-split captions that ask for the verb (captions written from the whole trial; the first
@@ -12,9 +12,9 @@ DIR is a folder written by ``python -m mld_core data prepare cmu-joints``. The t
   command: a plain command ("jump", "crawl", "climb a ladder"),
   user:    a description as a user writes it ("a person jumps over a puddle").
 Each prompt is generated with ``--seeds`` seeds (seeds 0..N-1) at ``--seconds``. The real rate is the check's pass
-rate on the real test windows of that verb (all splits when the test split has fewer than 8). Prints one row per verb
-and wording: takes, pass rate, the real rate and their ratio (the target is >= 0.8); ``--json`` writes every take's
-prompt, seed and pass. ``--vae-recon`` generates nothing: it passes the real windows through the model's VAE and
+rate on the real test windows of that verb (``--split``'s instead; all splits when it has fewer than 8). Prints one
+row per verb and wording: takes, pass rate, the real rate and their ratio (the target is >= 0.8); ``--json`` writes
+every take's prompt, seed and pass. ``--vae-recon`` generates nothing: it passes the real windows through the model's VAE and
 prints each verb's pass rate before and after (the ceiling a denoiser on that VAE can reach; a VAE-only run folder
 works). A measurement, not a test: it asserts nothing. The Bandai contents' table is
 ``research/side_accuracy.py``.
@@ -64,15 +64,18 @@ def real_rate(data: Path, wins: list[tuple[str, list[str]]], verb: str) -> float
     return float(np.mean(hits)) if hits else float("nan")
 
 
-def prompts_for(data: Path, verb: str, whole: set[str], captions: int) -> tuple[dict, list]:
-    """The wordings' prompts for ``verb`` and the real windows its real rate is read on."""
+def prompts_for(data: Path, verb: str, whole: set[str], captions: int, real_split: str = "test") -> tuple[dict, list]:
+    """The wordings' prompts for ``verb`` and the real windows its real rate is read on: those of ``real_split``
+    (all splits when it has fewer than MIN_REAL)."""
     test = windows_of(data, split_ids(data, "test"), whole, verb)
     for split in ("test", "val", "train"):
         pool = test if split == "test" else windows_of(data, split_ids(data, split), whole, verb)
         if pool:
             break
     chosen = sorted({caps[0] for _, caps in pool})[:captions]
-    real = test if len(test) >= MIN_REAL else windows_of(data, split_ids(data, "all"), whole, verb)
+    real = test if real_split == "test" else windows_of(data, split_ids(data, real_split), whole, verb)
+    if len(real) < MIN_REAL:
+        real = windows_of(data, split_ids(data, "all"), whole, verb)
     return {f"caption ({split})" if split != "test" else "caption": chosen, "command": [COMMANDS[verb]],
             "user": [USER[verb]]}, real
 
@@ -105,6 +108,9 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--vae-recon", action="store_true",
                     help="only the real windows through the model's VAE (works on a VAE-only run folder)")
+    ap.add_argument("--split", default="test", choices=("test", "val", "train"),
+                    help="the split whose real windows set the real rate (default test; train shows whether a VAE "
+                         "reproduces the clips it trained on)")
     args = ap.parse_args(argv)
     if not (args.data / "prepare_report.json").is_file():
         print(f"error: {args.data} is not a folder written by data prepare cmu-joints", file=sys.stderr)
@@ -127,7 +133,7 @@ def main(argv=None) -> int:
         print(f"model {pipe.model_id}: the real windows through its VAE")
         print(f"{'verb':12} {'windows':>7} {'real':>6} {'recon':>6}")
         for verb in verbs:
-            _, real_wins = prompts_for(args.data, verb, whole, args.captions)
+            _, real_wins = prompts_for(args.data, verb, whole, args.captions, args.split)
             real, recon = real_rate(args.data, real_wins, verb), vae_recon_rate(pipe, args.data, real_wins, verb)
             rows.append({"verb": verb, "real_windows": len(real_wins), "real": real, "vae_recon": recon})
             print(f"{verb:12} {len(real_wins):7d} {real:6.2f} {recon:6.2f}", flush=True)
@@ -137,7 +143,7 @@ def main(argv=None) -> int:
     print(f"model {pipe.model_id}; {args.seeds} seeds x {args.seconds:g} s")
     print(f"{'verb':12} {'wording':15} {'takes':>5} {'pass':>6} {'real':>6} {'ratio':>6}")
     for verb in verbs:
-        wordings, real_wins = prompts_for(args.data, verb, whole, args.captions)
+        wordings, real_wins = prompts_for(args.data, verb, whole, args.captions, args.split)
         real = real_rate(args.data, real_wins, verb)
         for wording, prompts in wordings.items():
             passed = []

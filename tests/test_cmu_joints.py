@@ -282,3 +282,28 @@ def test_data_summary_counts_hours_per_source_split_and_verb(clips, tmp_path, ca
     assert "| jump |" in out and "| train |" in out
     assert main(["data", "summary", str(tmp_path / "nothing")]) == 2
     assert capsys.readouterr().err.startswith("error: ")
+
+
+
+def test_the_vocabulary_benchmark_reads_the_real_windows_of_the_chosen_split(clips, tmp_path, capsys, monkeypatch):
+    """scripts/vocabulary.py --split: the real rate is read on that split's windows of the verb (all splits when it
+    has too few), so a VAE can be checked on the clips it trained on as well as on the test clips."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    import vocabulary
+
+    from mld_core.data.dataset import split_ids
+
+    out = tmp_path / "data"
+    assert prepare(source(tmp_path / "cmu", clips), out, capsys)[0] == 0
+    whole = set(split_ids(out, "all"))  # every window counts as a whole trial here
+    hop = [i for i in whole if not i.startswith("M") and "jumps" in (out / "texts" / f"{i}.txt").read_text()]
+    assert len(hop) == 1
+    home = next(sp for sp in ("train", "val", "test") if hop[0] in split_ids(out, sp))
+    monkeypatch.setattr(vocabulary, "MIN_REAL", 0)  # no fallback to all splits
+    for split in ("train", "val", "test"):
+        _, real = vocabulary.prompts_for(out, "jump", whole, 2, split)
+        assert [cid for cid, _ in real] == (hop if split == home else [])
+    monkeypatch.setattr(vocabulary, "MIN_REAL", 8)  # too few real windows in a split: all splits'
+    assert [cid for cid, _ in vocabulary.prompts_for(out, "jump", whole, 2, "train")[1]] == hop

@@ -7,8 +7,9 @@
 #
 # PACK and TEXT_ENCODER_DIR: scripts/pack_for_device.py's data.npz and minilm/; VAE_DIR: a model folder holding the
 # VAE to continue (config.json, vae.safetensors). The denoisers: a, the bundled model's architecture; b, 9 layers
-# (MLD's depth); c, conditioned on action labels (`generate --action`). OUT gets the exported fp16 models and every
-# log as one tar in parts of 15 MB (scripts and logs first, so a sitting cut short still brings back what ran).
+# (MLD's depth); c, conditioned on action labels (`generate --action`); DENOISER_MINUTES 0 trains the VAE alone.
+# OUT gets the exported fp16 models and every log as one tar in parts of 15 MB (scripts and logs first, so a sitting
+# cut short still brings back what ran).
 set -uo pipefail
 pack="${1:?pack file}"; text="${2:?text encoder folder}"; vae_init="${3:?VAE folder}"; out="${4:?output folder}"
 vae_minutes="${5:-2.8}"; den_minutes="${6:-3.8}"; device="${7:-cuda}"
@@ -58,10 +59,14 @@ denoiser() {  # denoiser NAME CONFIG COND
         "${encoder[@]}" > "$work/export_$name.log" 2>&1 || { log "$name: export failed"; tail -3 "$work/export_$name.log"; }
     log "$name: done"
 }
-denoiser den_a research/v4/denoiser_a.json text &
-denoiser den_b research/v4/denoiser_b.json text &
-denoiser den_c research/v4/denoiser_action.json action &
-wait
+if "$PY" -c "import sys; sys.exit(0 if float('$den_minutes') > 0 else 1)"; then
+    denoiser den_a research/v4/denoiser_a.json text &
+    denoiser den_b research/v4/denoiser_b.json text &
+    denoiser den_c research/v4/denoiser_action.json action &
+    wait
+else
+    log "no denoiser minutes: the sitting brings back the VAE alone"
+fi
 
 # 4. What comes back: the exports, the VAE in fp16 and the logs (train states stay: too large to bring back).
 for run in vae den_a den_b den_c; do
