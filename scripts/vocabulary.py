@@ -14,9 +14,9 @@ DIR is a folder written by ``python -m mld_core data prepare cmu-joints``. The t
 Each prompt is generated with ``--seeds`` seeds (seeds 0..N-1) at ``--seconds``. The real rate is the check's pass
 rate on the real test windows of that verb (``--split``'s instead; all splits when it has fewer than 8). Prints one
 row per verb and wording: takes, pass rate, the real rate and their ratio (the target is >= 0.8); ``--json`` writes
-every take's prompt, seed and pass. ``--vae-recon`` generates nothing: it passes the real windows through the model's VAE and
-prints each verb's pass rate before and after (the ceiling a denoiser on that VAE can reach; a VAE-only run folder
-works). A measurement, not a test: it asserts nothing. The Bandai contents' table is
+every take's prompt, seed and pass. ``--vae-recon`` generates nothing: it passes the real windows through the
+model's VAE and prints each verb's pass rate before and after (the ceiling a denoiser on that VAE can reach; a
+VAE-only run folder works). A measurement, not a test: it asserts nothing. The Bandai contents' table is
 ``research/side_accuracy.py``.
 """
 
