@@ -284,13 +284,10 @@ def test_data_summary_counts_hours_per_source_split_and_verb(clips, tmp_path, ca
     assert capsys.readouterr().err.startswith("error: ")
 
 
-
 def test_the_vocabulary_benchmark_reads_the_real_windows_of_the_chosen_split(clips, tmp_path, capsys, monkeypatch):
     """scripts/vocabulary.py --split: the real rate is read on that split's windows of the verb (all splits when it
     has too few), so a VAE can be checked on the clips it trained on as well as on the test clips."""
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "scripts"))
     import vocabulary
 
     from mld_core.data.dataset import split_ids

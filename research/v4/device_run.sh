@@ -13,6 +13,9 @@
 set -uo pipefail
 pack="${1:?pack file}"; text="${2:?text encoder folder}"; vae_init="${3:?VAE folder}"; out="${4:?output folder}"
 vae_minutes="${5:-2.8}"; den_minutes="${6:-3.8}"; device="${7:-cuda}"
+for m in "$vae_minutes" "$den_minutes"; do
+    [[ "$m" =~ ^[0-9]+([.][0-9]+)?$ ]] || { echo "error: minutes must be a number >= 0, got '$m'" >&2; exit 2; }
+done
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
 cd "$here"
 export PYTHONPATH="$here${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
