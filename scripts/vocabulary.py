@@ -16,7 +16,8 @@ rate on the real test windows of that verb (``--split``'s instead; all splits wh
 row per verb and wording: takes, pass rate, the real rate and their ratio (the target is >= 0.8); ``--json`` writes
 every take's prompt, seed and pass. ``--vae-recon`` generates nothing: it passes the real windows through the
 model's VAE and prints each verb's pass rate before and after (the ceiling a denoiser on that VAE can reach; a
-VAE-only run folder works). A measurement, not a test: it asserts nothing. The Bandai contents' table is
+VAE-only run folder works). An action-conditioned model (``train denoiser --cond action``) is asked for each verb
+by its action label instead, one wording "action". A measurement, not a test: it asserts nothing. The Bandai contents' table is
 ``research/side_accuracy.py``.
 """
 
@@ -140,15 +141,23 @@ def main(argv=None) -> int:
         if args.json:
             args.json.write_text(json.dumps({"model": pipe.model_id, "rows": rows}, indent=1) + "\n")
         return 0
-    print(f"model {pipe.model_id}; {args.seeds} seeds x {args.seconds:g} s")
+    by_action = pipe.config.denoiser is not None and pipe.config.denoiser.cond == "action"
+    missing = [v for v in verbs if by_action and v not in pipe.config.actions]
+    if missing:
+        print(f"error: this action-conditioned model has no label {', '.join(missing)}", file=sys.stderr)
+        return 2
+    print(f"model {pipe.model_id}; {args.seeds} seeds x {args.seconds:g} s" + (" (action labels)" if by_action else ""))
     print(f"{'verb':12} {'wording':15} {'takes':>5} {'pass':>6} {'real':>6} {'ratio':>6}")
     for verb in verbs:
         wordings, real_wins = prompts_for(args.data, verb, whole, args.captions, args.split)
+        if by_action:
+            wordings = {"action": [verb]}
         real = real_rate(args.data, real_wins, verb)
         for wording, prompts in wordings.items():
             passed = []
             for prompt in prompts:
-                out = pipe([prompt], seconds=args.seconds, seed=0, num_variants=args.seeds)
+                actions = {"actions": [prompt]} if by_action else {}
+                out = pipe([prompt], seconds=args.seconds, seed=0, num_variants=args.seeds, **actions)
                 for v in range(len(out.joints)):
                     ok = physical.shows(out.joints[v, : out.lengths[v]], verb)
                     passed.append(ok)

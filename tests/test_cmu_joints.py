@@ -304,3 +304,24 @@ def test_the_vocabulary_benchmark_reads_the_real_windows_of_the_chosen_split(cli
         assert [cid for cid, _ in real] == (hop if split == home else [])
     monkeypatch.setattr(vocabulary, "MIN_REAL", 8)  # too few real windows in a split: all splits'
     assert [cid for cid, _ in vocabulary.prompts_for(out, "jump", whole, 2, "train")[1]] == hop
+
+
+def test_the_vocabulary_benchmark_asks_an_action_model_by_its_labels(clips, tmp_path, capsys, monkeypatch):
+    """scripts/vocabulary.py on an action-conditioned model: each verb is generated from its action label (one
+    wording, "action", seeds x 1 takes); a verb the model has no label for is refused in one line."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "scripts"))
+    import vocabulary
+
+    from mld_core.testing import tiny_model
+
+    out = tmp_path / "data"
+    assert prepare(source(tmp_path / "cmu", clips), out, capsys)[0] == 0
+    model = tiny_model(tmp_path / "act", cond="action", actions=("jump", "walk"))
+    capsys.readouterr()
+    argv = ["--data", str(out), "--model", str(model), "--seeds", "2", "--seconds", "2", "--threads", "1"]
+    assert vocabulary.main(argv + ["--verbs", "jump", "--json", str(tmp_path / "v.json")]) == 0
+    assert "(action labels)" in capsys.readouterr().out
+    rows = json.loads((tmp_path / "v.json").read_text())["rows"]
+    assert [(r["verb"], r["wording"], r["prompts"], r["takes"]) for r in rows] == [("jump", "action", ["jump"], 2)]
+    assert vocabulary.main(argv + ["--verbs", "jump,kick"]) == 2
+    assert capsys.readouterr().err.strip() == "error: this action-conditioned model has no label kick"

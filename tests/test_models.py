@@ -14,7 +14,7 @@ from mld_core.models.transformer import SkipTransformer, TransformerConfig
 from mld_core.models.vae import MotionVAE, VAEConfig
 from mld_core.pipeline import Cancelled, MLDPipeline
 from mld_core.schedulers import DDIMScheduler, DDPMScheduler, SchedulerConfig
-from mld_core.testing import tiny_config, tiny_model, tiny_pipeline
+from mld_core.testing import tiny_model, tiny_pipeline
 
 
 def tiny_vae(seed=0, skip=True, n=1) -> MotionVAE:
@@ -175,6 +175,41 @@ def test_denoiser_condition_kinds_and_shapes(cross):
     a = den.condition_tokens(2, actions=torch.tensor([0, 1]))
     dropped = den.condition_tokens(2, actions=torch.tensor([0, 1]), drop=torch.tensor([False, True]))
     assert torch.equal(dropped[0], a[0]) and torch.equal(dropped[1], den.null_condition)
+
+
+@pytest.mark.parametrize("cross", [False, True])
+def test_denoiser_carried_to_another_condition_keeps_its_shared_weights(cross):
+    """with_condition(text -> action): the transformer, latent, time and length layers are the text denoiser's; the
+    positions keep time, the first condition token and the latent; the class embedding is fresh and seeded; a
+    denoiser of another transformer is refused."""
+    from mld_core.models.denoiser import with_condition
+
+    block = TransformerConfig(dim=32, heads=2, ff_dim=64, layers=1, dropout=0.0, cross_attention=cross)
+    torch.manual_seed(0)
+    text = LatentDenoiser(DenoiserConfig(latent_tokens=2, latent_dim=16, text_dim=24, text_pool_tokens=3,
+                                         transformer=block))
+    action_cfg = DenoiserConfig(**{**text.config.to_dict(), "cond": "action", "num_actions": 4})
+    action = with_condition(text, action_cfg, seed=5)
+    old, new = text.state_dict(), action.state_dict()
+    shared = [k for k in new if k.startswith(("transformer.", "latent_in", "latent_out", "time_mlp", "length_mlp"))]
+    assert len(shared) > 10 and all(torch.equal(old[k], new[k]) for k in shared)
+    assert torch.equal(new["null_condition"], old["null_condition"][:1])
+    if cross:
+        assert torch.equal(new["positions"], old["positions"])
+        assert torch.equal(new["cond_positions"], old["cond_positions"][:1])
+    else:  # (1 + C + n, d): time, condition, latent
+        assert new["positions"].shape[0] == 1 + 1 + 2
+        assert torch.equal(new["positions"][:2], old["positions"][:2])
+        assert torch.equal(new["positions"][-2:], old["positions"][-2:])
+    assert new["action_embedding.weight"].shape == (4, 32) and not any(k.startswith("text_proj") for k in new)
+    again = with_condition(text, action_cfg, seed=5).state_dict()["action_embedding.weight"]
+    assert torch.equal(again, new["action_embedding.weight"])
+    eps = action(torch.randn(2, 2, 16), torch.tensor([10, 500]), action.condition_tokens(2, actions=torch.tensor([0, 3])),
+                 torch.tensor([40, 80]))
+    assert eps.shape == (2, 2, 16) and torch.isfinite(eps).all()
+    deeper = DenoiserConfig(**{**action_cfg.to_dict(), "transformer": {**block.__dict__, "ff_dim": 32}})
+    with pytest.raises(ValueError, match="only the condition may differ"):
+        with_condition(text, deeper)
 
 
 def test_denoiser_length_conditioning_changes_prediction():

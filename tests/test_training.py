@@ -728,6 +728,32 @@ def test_action_conditioned_denoiser_trains_and_generates_each_label(folder, tmp
     assert np.isfinite(np.load(out)["joints"]).all()
 
 
+def test_action_denoiser_starts_from_a_text_denoiser_with_init(folder, tmp_path):
+    """`train denoiser --cond action --init TEXT_RUN`: the action model starts with the text model's transformer
+    (a warm start, not a copy of its condition) and generates each label."""
+    from safetensors.torch import load_file
+
+    vae_run, text_run, act_run = tmp_path / "vae", tmp_path / "text", tmp_path / "act"
+    assert main(["train", "vae", "--data", str(folder), "--out", str(vae_run), "--steps", "2", "--threads", "1",
+                 "--config", json.dumps(TINY_VAE)]) == 0
+    assert main(["train", "denoiser", "--data", str(folder), "--vae", str(vae_run), "--out", str(text_run),
+                 "--steps", "2", "--threads", "1", "--config", json.dumps(TINY_DEN)]) == 0
+    den = {k: v for k, v in TINY_DEN.items() if k not in ("text_encoder", "denoiser")}
+    assert main(["train", "denoiser", "--data", str(folder), "--vae", str(vae_run), "--out", str(act_run), "--cond",
+                 "action", "--init", str(text_run), "--steps", "1", "--lr", "1e-9", "--threads", "1",
+                 "--config", json.dumps(den)]) == 0
+    config = json.loads((act_run / "config.json").read_text())
+    assert config["denoiser"]["cond"] == "action" and config["denoiser"]["num_actions"] == 2
+    old, new = load_file(str(text_run / "denoiser.safetensors")), load_file(str(act_run / "denoiser.safetensors"))
+    shared = [k for k in new if k.startswith(("transformer.", "latent_in", "time_mlp"))]
+    assert len(shared) > 5 and all(torch.allclose(new[k].float(), old[k].float(), atol=1e-3) for k in shared)
+    assert "action_embedding.weight" in new and "text_proj.weight" not in new
+    out = tmp_path / "take.npz"
+    assert main(["generate", "--model", str(act_run), "--action", "a", "--seconds", "1.5", "--steps", "2",
+                 "--out", str(out)]) == 0
+    assert np.isfinite(np.load(out)["joints"]).all()
+
+
 def test_vae_fine_tune_takes_a_new_kl_weight_and_keeps_it_on_resume(tmp_path, capsys):
     """kl_weight overrides the --init model's KL weight (the fine-tuned folder's config says so) and the KL term of
     the loss moves with it; --resume keeps the first sitting's weight; a weight outside 0..1 is refused in one line."""

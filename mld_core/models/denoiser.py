@@ -83,7 +83,7 @@ class AttentionPool(nn.Module):
         if self.training or torch.is_grad_enabled():
             return self(project(tokens), valid)
         query, kv_weight, kv_bias = self._folded(project)
-        B, d = tokens.shape[0], query.shape[-1]
+        B = tokens.shape[0]
         key, value = F.linear(tokens.to(kv_weight.dtype), kv_weight, kv_bias).chunk(2, dim=-1)  # each (B, L, d)
         out = _attention(query.expand(B, -1, -1), key, value, self.attn.num_heads, valid[:, None, None, :])
         out = F.linear(out, self.attn.out_proj.weight, self.attn.out_proj.bias)  # (B, K, d)
@@ -196,6 +196,35 @@ class LatentDenoiser(nn.Module):
             seq = torch.cat([time[:, None], cond, latent], dim=1) + self.positions  # (B, 1 + C + n, d)
             out = self.transformer(seq)
         return self.latent_out(out[:, -cfg.latent_tokens:])
+
+
+def with_condition(denoiser: LatentDenoiser, config: DenoiserConfig, seed: int = 0) -> LatentDenoiser:
+    """A denoiser of ``config`` (another condition kind, e.g. action instead of text) carrying over ``denoiser``'s
+    shared weights: the transformer, the latent, time and length layers, the first condition token's position and
+    null. The new condition's own layers (a class embedding, text projections) start fresh, drawn with ``seed``. A
+    warm start for training another condition on the same latents."""
+    if config.transformer != denoiser.config.transformer or config.latent_tokens != denoiser.config.latent_tokens:
+        raise ValueError("only the condition may differ between a denoiser and the one it is carried over to")
+    torch.manual_seed(seed)
+    target = LatentDenoiser(config)
+    old, new = denoiser.state_dict(), target.state_dict()
+    n, c_old, c_new = config.latent_tokens, denoiser.config.cond_tokens, config.cond_tokens
+    kept = {k: v for k, v in old.items() if k in new and v.shape == new[k].shape}
+    kept["null_condition"] = _first_rows(old["null_condition"], new["null_condition"], c_new)
+    if not config.transformer.cross_attention:  # positions (1 + C + n, d): time, condition, latent
+        pos, fresh = old["positions"], new["positions"]
+        cond = _first_rows(pos[1:1 + c_old], fresh[1:1 + c_new], c_new)
+        kept["positions"] = torch.cat([pos[:1], cond, pos[-n:]])
+    else:
+        kept["cond_positions"] = _first_rows(old["cond_positions"], new["cond_positions"], c_new)
+    target.load_state_dict({**new, **kept})
+    return target
+
+
+def _first_rows(old: torch.Tensor, fresh: torch.Tensor, rows: int) -> torch.Tensor:
+    """``old``'s first ``rows`` rows, the rest (where ``old`` has fewer) from ``fresh``."""
+    k = min(rows, len(old))
+    return torch.cat([old[:k], fresh[k:rows]])
 
 
 def grow_latent(denoiser: LatentDenoiser, tokens: int, noise: float = 0.0, seed: int = 0) -> LatentDenoiser:

@@ -28,7 +28,7 @@ from mld_core import inputs
 from mld_core.checkpoint import load_config, load_weights, save_json, save_weights
 from mld_core.condition.content_anchor import ContentAnchorConfig
 from mld_core.data.captions import reworded
-from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser, grow_latent
+from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser, grow_latent, with_condition
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import DDPMScheduler
 from mld_core.training import distributed
@@ -228,16 +228,17 @@ class _DenoiserLoss(torch.nn.Module):
         return torch.nn.functional.mse_loss(den(z_t, t, cond, lengths).float(), noise)
 
 
-def initial_denoiser(init: Path, dcfg: DenoiserConfig, init_tokens: int, seed: int) -> LatentDenoiser:
-    """The --init model's denoiser for ``dcfg``; where the VAE's latent has more tokens than it denoises (a grown
-    latent, ``train vae`` with grow_latent_tokens), its latent positions grown the same way."""
-    if dcfg.latent_tokens == init_tokens:
-        denoiser = LatentDenoiser(dcfg)
-        load_weights(init / "denoiser.safetensors", denoiser)
-        return denoiser
-    old = LatentDenoiser(DenoiserConfig(**{**dcfg.to_dict(), "latent_tokens": init_tokens}))
+def initial_denoiser(init: Path, init_cfg: DenoiserConfig, dcfg: DenoiserConfig, seed: int) -> LatentDenoiser:
+    """The --init model's denoiser (``init_cfg``) for ``dcfg``: where the VAE's latent has more tokens than it
+    denoises (a grown latent, ``train vae`` with grow_latent_tokens), its latent positions grown the same way; where
+    ``dcfg`` has another condition kind, its shared weights carried over (``with_condition``)."""
+    old = LatentDenoiser(init_cfg)
     load_weights(init / "denoiser.safetensors", old)
-    return grow_latent(old, dcfg.latent_tokens, noise=GROWTH_NOISE, seed=seed)
+    if dcfg.latent_tokens != init_cfg.latent_tokens:
+        old = grow_latent(old, dcfg.latent_tokens, noise=GROWTH_NOISE, seed=seed)
+    if dcfg.cond != init_cfg.cond or dcfg.num_actions != init_cfg.num_actions:
+        return with_condition(old, dcfg, seed=seed)
+    return old
 
 
 def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
@@ -264,7 +265,8 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     init = load_config(Path(cfg.init)) if cfg.init else None
     if init is not None and init.denoiser is None:
         raise ValueError(f"--init {cfg.init} has no denoiser to continue from")
-    dcfg = init.denoiser if init is not None else cfg.denoiser
+    init_cfg = copy.deepcopy(init.denoiser) if init is not None else None
+    dcfg = copy.deepcopy(init_cfg) if init is not None else cfg.denoiser
     init_tokens = dcfg.latent_tokens  # the --init denoiser's latent, grown below where the VAE's has more tokens
     dcfg.cond = cfg.cond
     dcfg.latent_tokens, dcfg.latent_dim, dcfg.max_frames = base.vae.latent_tokens, base.vae.latent_dim, base.max_frames
@@ -316,7 +318,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
 
     # 3. Model, EMA, optimiser, sampling weights.
     if init is not None and not resume:
-        denoiser = initial_denoiser(Path(cfg.init), dcfg, init_tokens, cfg.seed)
+        denoiser = initial_denoiser(Path(cfg.init), init_cfg, dcfg, cfg.seed)
     else:
         denoiser = LatentDenoiser(dcfg)
     ema = copy.deepcopy(denoiser).requires_grad_(False)
