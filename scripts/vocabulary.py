@@ -17,8 +17,8 @@ row per verb and wording: takes, pass rate, the real rate and their ratio (the t
 every take's prompt, seed and pass. ``--vae-recon`` generates nothing: it passes the real windows through the
 model's VAE and prints each verb's pass rate before and after (the ceiling a denoiser on that VAE can reach; a
 VAE-only run folder works). An action-conditioned model (``train denoiser --cond action``) is asked for each verb
-by its action label instead, one wording "action". A measurement, not a test: it asserts nothing. The Bandai contents' table is
-``research/side_accuracy.py``.
+by its action label instead, one wording "action". A measurement, not a test: it asserts nothing. The Bandai
+contents' table is ``research/side_accuracy.py``.
 """
 
 from __future__ import annotations
@@ -142,7 +142,7 @@ def main(argv=None) -> int:
             args.json.write_text(json.dumps({"model": pipe.model_id, "rows": rows}, indent=1) + "\n")
         return 0
     by_action = pipe.config.denoiser is not None and pipe.config.denoiser.cond == "action"
-    missing = [v for v in verbs if by_action and v not in pipe.config.actions]
+    missing = [v for v in verbs if v not in pipe.config.actions] if by_action else []
     if missing:
         print(f"error: this action-conditioned model has no label {', '.join(missing)}", file=sys.stderr)
         return 2

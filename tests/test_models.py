@@ -202,7 +202,9 @@ def test_denoiser_carried_to_another_condition_keeps_its_shared_weights(cross):
         assert torch.equal(new["positions"][:2], old["positions"][:2])
         assert torch.equal(new["positions"][-2:], old["positions"][-2:])
     assert new["action_embedding.weight"].shape == (4, 32) and not any(k.startswith("text_proj") for k in new)
+    rng = torch.random.get_rng_state()
     again = with_condition(text, action_cfg, seed=5).state_dict()["action_embedding.weight"]
+    assert torch.equal(rng, torch.random.get_rng_state())  # the caller's random stream is left as it was
     assert torch.equal(again, new["action_embedding.weight"])
     eps = action(torch.randn(2, 2, 16), torch.tensor([10, 500]), action.condition_tokens(2, actions=torch.tensor([0, 3])),
                  torch.tensor([40, 80]))

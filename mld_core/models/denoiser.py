@@ -205,8 +205,9 @@ def with_condition(denoiser: LatentDenoiser, config: DenoiserConfig, seed: int =
     warm start for training another condition on the same latents."""
     if config.transformer != denoiser.config.transformer or config.latent_tokens != denoiser.config.latent_tokens:
         raise ValueError("only the condition may differ between a denoiser and the one it is carried over to")
-    torch.manual_seed(seed)
-    target = LatentDenoiser(config)
+    with torch.random.fork_rng(devices=[]):  # the fresh layers drawn from ``seed``, the caller's RNG untouched
+        torch.manual_seed(seed)
+        target = LatentDenoiser(config)
     old, new = denoiser.state_dict(), target.state_dict()
     n, c_old, c_new = config.latent_tokens, denoiser.config.cond_tokens, config.cond_tokens
     kept = {k: v for k, v in old.items() if k in new and v.shape == new[k].shape}

@@ -228,17 +228,17 @@ class _DenoiserLoss(torch.nn.Module):
         return torch.nn.functional.mse_loss(den(z_t, t, cond, lengths).float(), noise)
 
 
-def initial_denoiser(init: Path, init_cfg: DenoiserConfig, dcfg: DenoiserConfig, seed: int) -> LatentDenoiser:
+def initial_denoiser(init: Path, init_cfg: DenoiserConfig, dcfg: DenoiserConfig, new_condition: bool,
+                     seed: int) -> LatentDenoiser:
     """The --init model's denoiser (``init_cfg``) for ``dcfg``: where the VAE's latent has more tokens than it
-    denoises (a grown latent, ``train vae`` with grow_latent_tokens), its latent positions grown the same way; where
-    ``dcfg`` has another condition kind, its shared weights carried over (``with_condition``)."""
+    denoises (a grown latent, ``train vae`` with grow_latent_tokens), its latent positions grown the same way; with
+    ``new_condition`` (another condition kind, or other action labels), only its shared weights carried over
+    (``with_condition``)."""
     old = LatentDenoiser(init_cfg)
     load_weights(init / "denoiser.safetensors", old)
     if dcfg.latent_tokens != init_cfg.latent_tokens:
         old = grow_latent(old, dcfg.latent_tokens, noise=GROWTH_NOISE, seed=seed)
-    if dcfg.cond != init_cfg.cond or dcfg.num_actions != init_cfg.num_actions:
-        return with_condition(old, dcfg, seed=seed)
-    return old
+    return with_condition(old, dcfg, seed=seed) if new_condition else old
 
 
 def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
@@ -267,11 +267,11 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
         raise ValueError(f"--init {cfg.init} has no denoiser to continue from")
     init_cfg = copy.deepcopy(init.denoiser) if init is not None else None
     dcfg = copy.deepcopy(init_cfg) if init is not None else cfg.denoiser
-    init_tokens = dcfg.latent_tokens  # the --init denoiser's latent, grown below where the VAE's has more tokens
     dcfg.cond = cfg.cond
     dcfg.latent_tokens, dcfg.latent_dim, dcfg.max_frames = base.vae.latent_tokens, base.vae.latent_dim, base.max_frames
-    if init is not None and dcfg.latent_tokens < init_tokens:  # before the slow steps below
-        raise ValueError(f"--init {cfg.init} denoises {init_tokens}-token latents; the VAE's have {dcfg.latent_tokens}")
+    if init is not None and dcfg.latent_tokens < init_cfg.latent_tokens:  # grown below where the VAE's has more
+        raise ValueError(f"--init {cfg.init} denoises {init_cfg.latent_tokens}-token latents; "
+                         f"the VAE's have {dcfg.latent_tokens}")
     if cfg.cond == "action":
         dcfg.num_actions = len(actions)
     trainable_parameters(LatentDenoiser(dcfg), cfg.train_modules, "denoiser")  # names checked before the slow steps
@@ -318,7 +318,8 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
 
     # 3. Model, EMA, optimiser, sampling weights.
     if init is not None and not resume:
-        denoiser = initial_denoiser(Path(cfg.init), init_cfg, dcfg, cfg.seed)
+        new_condition = dcfg.cond != init_cfg.cond or (cfg.cond == "action" and list(init.actions) != actions)
+        denoiser = initial_denoiser(Path(cfg.init), init_cfg, dcfg, new_condition, cfg.seed)
     else:
         denoiser = LatentDenoiser(dcfg)
     ema = copy.deepcopy(denoiser).requires_grad_(False)
