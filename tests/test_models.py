@@ -180,8 +180,8 @@ def test_denoiser_condition_kinds_and_shapes(cross):
 @pytest.mark.parametrize("cross", [False, True])
 def test_denoiser_carried_to_another_condition_keeps_its_shared_weights(cross):
     """with_condition(text -> action): the transformer, latent, time and length layers are the text denoiser's; the
-    positions keep time, the first condition token and the latent; the class embedding is fresh and seeded; a
-    denoiser of another transformer is refused."""
+    positions keep time, the first condition token and the latent; the class embedding is fresh and seeded, also
+    when an action model is carried to other labels of the same count; a denoiser of another transformer is refused."""
     from mld_core.models.denoiser import with_condition
 
     block = TransformerConfig(dim=32, heads=2, ff_dim=64, layers=1, dropout=0.0, cross_attention=cross)
@@ -206,6 +206,9 @@ def test_denoiser_carried_to_another_condition_keeps_its_shared_weights(cross):
     again = with_condition(text, action_cfg, seed=5).state_dict()["action_embedding.weight"]
     assert torch.equal(rng, torch.random.get_rng_state())  # the caller's random stream is left as it was
     assert torch.equal(again, new["action_embedding.weight"])
+    relabelled = with_condition(action, action_cfg, seed=6).state_dict()  # other labels, as many: a fresh embedding
+    assert not torch.equal(relabelled["action_embedding.weight"], new["action_embedding.weight"])
+    assert all(torch.equal(relabelled[k], new[k]) for k in shared)
     eps = action(torch.randn(2, 2, 16), torch.tensor([10, 500]), action.condition_tokens(2, actions=torch.tensor([0, 3])),
                  torch.tensor([40, 80]))
     assert eps.shape == (2, 2, 16) and torch.isfinite(eps).all()

@@ -748,9 +748,10 @@ def test_action_denoiser_starts_from_a_text_denoiser_with_init(folder, tmp_path)
     shared = [k for k in new if k.startswith(("transformer.", "latent_in", "time_mlp"))]
     assert len(shared) > 5 and all(torch.allclose(new[k].float(), old[k].float(), atol=1e-3) for k in shared)
     assert "action_embedding.weight" in new and "text_proj.weight" not in new
-    again = tmp_path / "again"  # an action model continued on the same labels keeps its class embedding
+    again = tmp_path / "again"  # an action model continued on the same labels keeps its class embedding (another
+    # seed, so that a fresh one would differ)
     assert main(["train", "denoiser", "--data", str(folder), "--vae", str(vae_run), "--out", str(again), "--cond",
-                 "action", "--init", str(act_run), "--steps", "1", "--lr", "1e-9", "--threads", "1",
+                 "action", "--init", str(act_run), "--steps", "1", "--lr", "1e-9", "--threads", "1", "--seed", "1",
                  "--config", json.dumps(den)]) == 0
     kept = load_file(str(again / "denoiser.safetensors"))["action_embedding.weight"].float()
     assert torch.allclose(kept, new["action_embedding.weight"].float(), atol=1e-3)

@@ -198,11 +198,16 @@ class LatentDenoiser(nn.Module):
         return self.latent_out(out[:, -cfg.latent_tokens:])
 
 
+# The layers of one condition kind (text projections and pool, the class embedding): never carried to another.
+CONDITION_LAYERS = ("text_proj.", "token_proj.", "token_pool.", "action_embedding.")
+
+
 def with_condition(denoiser: LatentDenoiser, config: DenoiserConfig, seed: int = 0) -> LatentDenoiser:
     """A denoiser of ``config`` (another condition kind, e.g. action instead of text) carrying over ``denoiser``'s
     shared weights: the transformer, the latent, time and length layers, the first condition token's position and
-    null. The new condition's own layers (a class embedding, text projections) start fresh, drawn with ``seed``. A
-    warm start for training another condition on the same latents."""
+    null. The new condition's own layers (``CONDITION_LAYERS``: a class embedding, text projections) start fresh,
+    drawn with ``seed``, even where their shapes match (an action model carried to other labels). A warm start for
+    training another condition on the same latents."""
     if config.transformer != denoiser.config.transformer or config.latent_tokens != denoiser.config.latent_tokens:
         raise ValueError("only the condition may differ between a denoiser and the one it is carried over to")
     with torch.random.fork_rng(devices=[]):  # the fresh layers drawn from ``seed``, the caller's RNG untouched
@@ -210,7 +215,8 @@ def with_condition(denoiser: LatentDenoiser, config: DenoiserConfig, seed: int =
         target = LatentDenoiser(config)
     old, new = denoiser.state_dict(), target.state_dict()
     n, c_old, c_new = config.latent_tokens, denoiser.config.cond_tokens, config.cond_tokens
-    kept = {k: v for k, v in old.items() if k in new and v.shape == new[k].shape}
+    kept = {k: v for k, v in old.items()
+            if k in new and v.shape == new[k].shape and not k.startswith(CONDITION_LAYERS)}
     kept["null_condition"] = _first_rows(old["null_condition"], new["null_condition"], c_new)
     if not config.transformer.cross_attention:  # positions (1 + C + n, d): time, condition, latent
         pos, fresh = old["positions"], new["positions"]
