@@ -9,7 +9,8 @@
 # VAE to continue (config.json, vae.safetensors). The denoisers: a, the bundled model's architecture; b, 9 layers
 # (MLD's depth); c, conditioned on action labels (`generate --action`); DENOISER_MINUTES 0 trains the VAE alone.
 # OUT gets the exported fp16 models and every log as one tar in parts of 15 MB (scripts and logs first, so a sitting
-# cut short still brings back what ran).
+# cut short still brings back what ran). The runs themselves go to $V4_WORK (default runs/v4, the data beside it).
+# Put back together, a text model is export_den_a/ with vae_fp16.safetensors copied in as vae.safetensors.
 set -uo pipefail
 pack="${1:?pack file}"; text="${2:?text encoder folder}"; vae_init="${3:?VAE folder}"; out="${4:?output folder}"
 vae_minutes="${5:-2.8}"; den_minutes="${6:-3.8}"; device="${7:-cuda}"
@@ -20,8 +21,8 @@ here="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
 cd "$here"
 export PYTHONPATH="$here${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 PY="${PYTHON:-python3}"
-work=runs/v4
-data=runs/v4_data
+work="${V4_WORK:-runs/v4}"
+data="${work}_data"
 mkdir -p "$work" "$out"
 log() { echo "[$(date +%H:%M:%S)] $*"; }
 nvidia-smi -L 2>/dev/null; "$PY" -c "import torch; print('torch', torch.__version__, torch.cuda.is_available())"

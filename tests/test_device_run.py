@@ -1,0 +1,93 @@
+"""research/v4/device_run.sh end to end on the CPU: a GPU sitting is rare and short, so the script it runs is
+exercised here on a tiny pack (scripts/pack_for_device.py) with the bundled VAE, a few seconds per stage."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import tarfile
+from io import BytesIO
+from pathlib import Path
+
+import numpy as np
+import pytest
+from safetensors.torch import load_file
+
+from test_pack import _folder
+from test_text_encoder import needs_package
+
+REPO = Path(__file__).resolve().parents[1]
+BUNDLED = REPO / "mld_core" / "weights" / "default"
+
+pytestmark = [
+    pytest.mark.slow,
+    needs_package,
+    pytest.mark.skipif(shutil.which("bash") is None, reason="needs bash"),
+    pytest.mark.skipif(not (BUNDLED / "vae.safetensors").is_file(), reason="needs the bundled model's VAE"),
+]
+
+
+def _run(args: list[str], env: dict | None = None, timeout: int = 600) -> subprocess.CompletedProcess:
+    return subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=timeout,
+                          env={**os.environ, "PYTHON": sys.executable, **(env or {})})
+
+
+def _unpack_parts(out: Path, into: Path) -> list[str]:
+    parts = sorted(out.glob("v4.tar.part-*"))
+    assert parts, "the sitting brought nothing back"
+    blob = b"".join(p.read_bytes() for p in parts)
+    with tarfile.open(fileobj=BytesIO(blob)) as tar:
+        tar.extractall(into, filter="data")
+        return [m.name.removeprefix("./") for m in tar.getmembers()]
+
+
+@pytest.fixture(scope="module")
+def sitting(tmp_path_factory):
+    """One sitting on the CPU: 0.02 minutes of VAE, then the three denoisers 0.02 minutes each."""
+    root = tmp_path_factory.mktemp("sitting")
+    data = _folder(root / "data")
+    packed = _run([sys.executable, "scripts/pack_for_device.py", "--data", str(data), "--out", str(root / "pack"),
+                   "--vae", str(BUNDLED)])
+    assert packed.returncode == 0, packed.stderr[-2000:]
+    pack = root / "pack"
+    done = _run(["bash", "research/v4/device_run.sh", str(pack / "data.npz"), str(pack / "minilm"), str(pack / "vae"),
+                 str(root / "out"), "0.02", "0.02", "cpu"], env={"V4_WORK": str(root / "work")})
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-2000:]
+    back = root / "back"
+    names = _unpack_parts(root / "out", back)
+    return back, names, done.stdout
+
+
+def test_a_sitting_brings_back_the_vae_three_denoisers_and_their_logs(sitting):
+    back, names, stdout = sitting
+    for run in ("den_a", "den_b", "den_c"):
+        assert f"{run}: done" in stdout
+        assert {f"export_{run}/config.json", f"export_{run}/denoiser.safetensors", f"{run}_log.jsonl"} <= set(names)
+        assert f"export_{run}/vae.safetensors" not in names  # the VAE travels once, as vae_fp16
+    assert {"vae_log.jsonl", "vae_train_config.json", "vae_fp16.safetensors"} <= set(names)
+    vae, bundled = load_file(back / "vae_fp16.safetensors"), load_file(BUNDLED / "vae.safetensors")
+    assert vae.keys() == bundled.keys()
+    assert all(str(v.dtype) == "torch.float16" for v in vae.values() if v.is_floating_point())
+    assert any(not np.array_equal(vae[k].float().numpy(), bundled[k].float().numpy()) for k in vae)  # it trained
+
+
+def test_the_exports_put_together_generate(sitting):
+    from mld_core.pipeline import MLDPipeline
+
+    back, _, _ = sitting
+    for run in ("den_a", "den_c"):
+        shutil.copy(back / "vae_fp16.safetensors", back / f"export_{run}" / "vae.safetensors")
+    text = MLDPipeline.from_pretrained(back / "export_den_a")(["a person does a"], seconds=2.0, num_inference_steps=3)
+    assert text.joints.shape == (1, 40, 22, 3) and np.isfinite(text.joints).all()
+    action = MLDPipeline.from_pretrained(back / "export_den_c")
+    out = action(["x"], seconds=2.0, actions=["x"], num_inference_steps=3)
+    assert out.joints.shape == (1, 40, 22, 3) and np.isfinite(out.joints).all()
+
+
+def test_bad_minutes_are_refused_before_anything_runs(tmp_path):
+    done = _run(["bash", "research/v4/device_run.sh", "p.npz", "minilm", "vae", str(tmp_path / "out"), "seven"],
+                env={"V4_WORK": str(tmp_path / "work")})
+    assert done.returncode == 2 and "minutes must be a number" in done.stderr
+    assert not (tmp_path / "work").exists()
