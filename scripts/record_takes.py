@@ -13,7 +13,7 @@ and seam jerks. ``--compare`` prints per case ``same`` or the largest difference
 in a single bit.
 
 Float sums depend on the CPU's vector units and on the precision the Draft picks there, so the recording keeps the
-machine it was made on (torch version, CPU capability, the Draft's precision); takes are compared bit for bit only on
+machine it was made on (torch version, CPU capability, vendor and AMX, the Draft's precision); takes are compared bit for bit only on
 a machine of the same kind (elsewhere ``--compare`` says so and exits 3: record a reference there first).
 """
 
@@ -58,11 +58,27 @@ def cases(pipe, action_pipe) -> dict:
     }
 
 
+def cpu_kind() -> str:
+    """The CPU's vendor and whether it has AMX tiles: two CPUs of one vector capability (AVX512) still sum bfloat16
+    and float32 products differently when oneDNN picks AMX kernels on one of them."""
+    import platform
+
+    try:
+        info = Path("/proc/cpuinfo").read_text(errors="replace")
+    except OSError:
+        return platform.machine() or "unknown"
+    fields = {k.strip(): v.strip() for k, _, v in (line.partition(":") for line in info.splitlines()[:40])}
+    vendor = fields.get("vendor_id") or platform.machine()
+    return f"{vendor}{' amx' if ' amx_tile' in info else ''}"
+
+
 def machine(pipe) -> str:
-    """What the takes' bits depend on besides the code: torch, the CPU's vector units, the Draft's precision."""
+    """What the takes' bits depend on besides the code: torch, the CPU (vendor, vector and matrix units), the Draft's
+    precision."""
     import torch
 
-    return f"torch {torch.__version__}; cpu {torch.backends.cpu.get_cpu_capability()}; draft {pipe.draft_precision}"
+    return (f"torch {torch.__version__}; cpu {torch.backends.cpu.get_cpu_capability()} {cpu_kind()}; "
+            f"draft {pipe.draft_precision}")
 
 
 def arrays(out) -> dict:
