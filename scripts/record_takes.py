@@ -8,13 +8,14 @@ Runs the bundled model (``MLDPipeline.from_pretrained()``) on one thread on shor
 segments) through each path of ``MLDPipeline.__call__``: plain Final, Final without stepping, a Draft, a prompt that
 names a side (content anchor, side contrast and a side redraw), directed takes (pose keys, a root path and a loop;
 stepped and not), two variants ranked (the second first), a sequence, an unconditional take without repairs, and a
-tiny action model (``mld_core.testing.tiny_model``). Stores each case's features, joints, lengths, seeds, draws, constraint residuals
-and seam jerks. ``--compare`` prints per case ``same`` or the largest difference and exits 1 when any array differs
-in a single bit.
+tiny action model (``mld_core.testing.tiny_model``). Stores each case's features, joints, lengths, seeds, draws,
+constraint residuals and seam jerks. ``--compare`` prints per case ``same`` or the largest difference and exits 1
+when any array differs in a single bit.
 
 Float sums depend on the CPU's vector units and on the precision the Draft picks there, so the recording keeps the
-machine it was made on (torch version, CPU capability, vendor and AMX, the Draft's precision); takes are compared bit for bit only on
-a machine of the same kind (elsewhere ``--compare`` says so and exits 3: record a reference there first).
+machine it was made on (torch version, CPU capability, vendor and AMX, the Draft's precision); takes are compared bit
+for bit only on a machine of the same kind (elsewhere ``--compare`` says so and exits 3: record a reference there
+first).
 """
 
 from __future__ import annotations

@@ -91,3 +91,11 @@ def test_bad_minutes_are_refused_before_anything_runs(tmp_path):
                 env={"V4_WORK": str(tmp_path / "work")})
     assert done.returncode == 2 and "minutes must be a number" in done.stderr
     assert not (tmp_path / "work").exists()
+
+
+@pytest.mark.parametrize("out", ["work", "work/out", "."])
+def test_an_out_that_holds_or_is_inside_the_run_folders_is_refused(tmp_path, out):
+    done = _run(["bash", "research/v4/device_run.sh", "p.npz", "minilm", "vae", str(tmp_path / out)],
+                env={"V4_WORK": str(tmp_path / "work")})
+    assert done.returncode == 2 and "must not hold one another" in done.stderr
+    assert not (tmp_path / "work").exists()
