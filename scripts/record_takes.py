@@ -60,17 +60,16 @@ def cases(pipe, action_pipe) -> dict:
 
 
 def cpu_kind() -> str:
-    """The CPU's vendor and whether it has AMX tiles: two CPUs of one vector capability (AVX512) still sum bfloat16
-    and float32 products differently when oneDNN picks AMX kernels on one of them."""
-    import platform
+    """The CPU's name and whether it has AMX tiles (torch's own CPU capabilities, as ``native_bf16`` reads them): two
+    CPUs of one vector capability (AVX512) still sum bfloat16 and float32 products differently when oneDNN picks AMX
+    kernels on one of them."""
+    import torch
 
     try:
-        info = Path("/proc/cpuinfo").read_text(errors="replace")
-    except OSError:
-        return platform.machine() or "unknown"
-    fields = {k.strip(): v.strip() for k, _, v in (line.partition(":") for line in info.splitlines()[:40])}
-    vendor = fields.get("vendor_id") or platform.machine()
-    return f"{vendor}{' amx' if ' amx_tile' in info else ''}"
+        caps = torch.cpu.get_capabilities()
+    except (AttributeError, RuntimeError):
+        return "unknown"
+    return f"{caps.get('cpu_name') or caps.get('architecture') or 'unknown'}{' amx' if caps.get('amx_tile') else ''}"
 
 
 def machine(pipe) -> str:

@@ -25,7 +25,9 @@ work="${V4_WORK:-runs/v4}"
 data="${work}_data"
 # OUT and the run folders apart: the tar of the runs must not hold its own parts, nor OUT the train states.
 w="$(realpath -m "$work")/"; o="$(realpath -m "$out")/"
-[[ "$o" == "$w"* || "$w" == "$o"* ]] && { echo "error: OUT ($out) and V4_WORK ($work) must not hold one another" >&2; exit 2; }
+if [[ "$o" == "$w"* || "$w" == "$o"* ]]; then
+    echo "error: OUT ($out) and V4_WORK ($work) must not hold one another" >&2; exit 2
+fi
 mkdir -p "$work" "$out"
 log() { echo "[$(date +%H:%M:%S)] $*"; }
 nvidia-smi -L 2>/dev/null; "$PY" -c "import torch; print('torch', torch.__version__, torch.cuda.is_available())"
