@@ -128,6 +128,25 @@ def test_trials_become_a_training_folder_with_every_skip_explained(clips, tmp_pa
     assert (out / "LICENSE").read_text().count("mocap.cs.cmu.edu") == 2
 
 
+def test_captions_from_cmu_alone_leave_the_kit_sentences_out(clips, tmp_path, capsys):
+    src = source(tmp_path / "cmu", clips)
+    code, err = prepare(src, tmp_path / "all", capsys)
+    assert code == 0, err
+    code, err = prepare(src, tmp_path / "cmu_only", capsys, "--captions", "cmu")
+    assert code == 0, err
+    for name, kit_lines in (("all", 1), ("cmu_only", 0)):
+        out = tmp_path / name
+        walk_id = json.loads((out / "prepare_report.json").read_text())["trials"][0]["windows"][0]["id"]
+        texts = [t.split("#")[0] for t in (out / "texts" / f"{walk_id}.txt").read_text().splitlines()]
+        assert texts == ["A person walks forward and turns left."] * kit_lines + ["a person walks and veers left"]
+        assert ("Plappert" in (out / "LICENSE").read_text()) == bool(kit_lines)
+        readme = (out / "README.md").read_text()
+        assert ("KIT Motion-Language sentences" in readme) == bool(kit_lines)
+        assert json.loads((out / C.MANIFEST).read_text())["captions"] == ("all" if kit_lines else "cmu")
+    # the same windows and splits either way: only the captions differ
+    assert (tmp_path / "all" / "all.txt").read_text() == (tmp_path / "cmu_only" / "all.txt").read_text()
+
+
 def test_the_archive_reads_like_the_folder(clips, tmp_path, capsys):
     src = source(tmp_path / "cmu-mocap-joints", clips)
     archive = tmp_path / "cmu.tar.xz"

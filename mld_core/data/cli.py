@@ -59,6 +59,9 @@ def register(groups) -> None:
     c.add_argument("--out", required=True, metavar="DIR", help="output folder (new, empty, or a previous output)")
     c.add_argument("--no-mirror", action="store_true", help="do not add the mirrored M<id> copies")
     c.add_argument("--limit", type=int, default=None, help="only the first N trials (quick trials)")
+    c.add_argument("--captions", choices=("all", "cmu"), default="all",
+                   help="all: CMU's descriptions and KIT Motion-Language sentences (default); cmu: CMU's "
+                   "descriptions only, for weights whose use CMU's terms alone govern")
     c.add_argument("--quiet", action="store_true", help="no progress bar")
     c.set_defaults(func=_run_cmu_joints)
     prepare.set_defaults(func=lambda args: _missing_dataset(prepare))
@@ -175,7 +178,7 @@ def _run_cmu_joints(args) -> int:
     start = time.perf_counter()
     try:
         s = prepare_cmu_joints(args.src, args.out, mirror=not args.no_mirror, limit=args.limit,
-                               progress=not args.quiet)
+                               progress=not args.quiet, captions=args.captions)
     except PrepareError as exc:
         raise UsageError(str(exc)) from None
     sp = s["splits"]

@@ -8,8 +8,9 @@ leading frames that jump impossibly dropped, resampled to 20 fps by linear inter
 windows of at most 9.8 s whose captions are true of them (``mld_core.data.cmu_captions``), each window checked for
 plausibility (``mld_core.data.take_checks``) and mirrored. Calibration, range-of-motion and T-pose trials,
 two-subject trials whose description does not say what this subject does, and the second copy of a capture the
-database holds twice (under two subjects) are listed with their reason in ``prepare_report.json``; uncaptioned windows are written and listed in ``uncaptioned.txt`` (they train the VAE, not
-the denoiser). Splits are by subject: the test split holds subjects no other split has.
+database holds twice (under two subjects) are listed with their reason in ``prepare_report.json``; uncaptioned
+windows are written and listed in ``uncaptioned.txt`` (they train the VAE, not the denoiser). Splits are by subject:
+the test split holds subjects no other split has. ``--captions cmu`` leaves the KIT sentences out.
 """
 
 from __future__ import annotations
@@ -212,10 +213,11 @@ def windows(frames: int, fps: float = TARGET_FPS, max_s: float = MAX_SECONDS,
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b - a >= min_s * fps]
 
 
-def prepare_trial(trial: Trial, data, root: Path, mirror: bool = True) -> dict:
-    """One trial -> its windows' files under ``root``; returns its report entry (``error`` when skipped)."""
+def prepare_trial(trial: Trial, data, root: Path, mirror: bool = True, kit: bool = True) -> dict:
+    """One trial -> its windows' files under ``root``; returns its report entry (``error`` when skipped).
+    ``kit`` False: the trial's KIT sentences are left out, its captions come from CMU's description only."""
     entry = {"trial": trial.trial, "fps": trial.fps, "description": trial.description}
-    plan = cc.trial_plan(trial.description, trial.kit)
+    plan = cc.trial_plan(trial.description, trial.kit if kit else [])
     if plan.skip:
         return {**entry, "error": plan.skip}
     try:
@@ -292,8 +294,16 @@ def subject_splits(subjects) -> dict[str, str]:
 # the folder
 
 
-def prepare_cmu_joints(src, out, *, mirror: bool = True, limit: int | None = None, progress: bool = True) -> dict:
-    """Build the HumanML3D-format folder ``out`` from the CMU joints source ``src``; returns the summary."""
+CAPTION_SOURCES = {"all": "CMU's descriptions and KIT Motion-Language sentences",
+                   "cmu": "CMU's descriptions only"}
+
+
+def prepare_cmu_joints(src, out, *, mirror: bool = True, limit: int | None = None, progress: bool = True,
+                       captions: str = "all") -> dict:
+    """Build the HumanML3D-format folder ``out`` from the CMU joints source ``src``; returns the summary.
+    ``captions`` "cmu" leaves out the KIT sentences (a folder for weights whose use CMU's terms alone govern)."""
+    if captions not in CAPTION_SOURCES:
+        raise PrepareError(f"captions must be one of {', '.join(CAPTION_SOURCES)}, not {captions!r}")
     from tqdm import tqdm
 
     from mld_core.data.verbs import verbs_in
@@ -315,7 +325,7 @@ def prepare_cmu_joints(src, out, *, mirror: bool = True, limit: int | None = Non
             if name not in arrays:
                 report.append({"trial": name, "error": "no joints/<trial>.npy in the source"})
                 continue
-            report.append(prepare_trial(trials[name], arrays.pop(name), tmp, mirror))
+            report.append(prepare_trial(trials[name], arrays.pop(name), tmp, mirror, kit=captions == "all"))
         report += [{"trial": d, "error": f"the same capture as {k} (kept under {k})"}
                    for d, k in sorted(duplicates.items()) if limit is None]
         ok = [r for r in report if "error" not in r]
@@ -340,11 +350,11 @@ def prepare_cmu_joints(src, out, *, mirror: bool = True, limit: int | None = Non
         actions = {"classes": sorted(set(labels.values())), "clips": labels,
                    "styles": {i: "" for i in all_ids}}
         (tmp / "actions.json").write_text(json.dumps(actions, indent=1) + "\n", encoding="utf-8")
-        summary = _summary(report, splits, uncaptioned, mirror, len(report))
+        summary = {**_summary(report, splits, uncaptioned, mirror, len(report)), "captions": captions}
         (tmp / REPORT).write_text(json.dumps({"summary": summary, "trials": report}, indent=1) + "\n",
                                   encoding="utf-8")
         (tmp / "README.md").write_text(_readme(summary), encoding="utf-8")
-        (tmp / "LICENSE").write_text(LICENSE_TEXT, encoding="utf-8")
+        (tmp / "LICENSE").write_text(license_text(captions), encoding="utf-8")
         (tmp / MANIFEST).write_text(json.dumps({**summary, "files": written_files(tmp) + [MANIFEST]}, indent=1)
                                     + "\n", encoding="utf-8")
         swap_into_place(tmp, out, found)
@@ -376,30 +386,44 @@ def _summary(report: list[dict], splits: dict, uncaptioned: list[str], mirror: b
             "skipped": {r["trial"]: r["error"] for r in report if "error" in r}}
 
 
-LICENSE_TEXT = """The motion in this folder comes from the CMU Graphics Lab Motion Capture Database (mocap.cs.cmu.edu).
+_LICENSE_MOTION = """The motion in this folder comes from the CMU Graphics Lab Motion Capture Database (mocap.cs.cmu.edu).
 
 CMU's terms: "This data is free for use in research projects. You may include this data in commercially-sold
 products, but you may not resell this data directly, even in converted form."
 Acknowledgement: "The data used in this project was obtained from mocap.cs.cmu.edu. The database was created with
 funding from NSF EIA-0196217."
+"""
 
+_LICENSE_KIT = """
 Captions that are KIT Motion-Language sentences come from: Plappert, Mandery and Asfour, "The KIT Motion-Language
 Dataset", Big Data 4(4), 2016 (an open research dataset whose licence is not stated). The other captions are written
 from CMU's own trial descriptions by `python -m mld_core data prepare cmu-joints`.
 """
 
+_LICENSE_CMU_ONLY = """
+Every caption is written from CMU's own trial descriptions by `python -m mld_core data prepare cmu-joints --captions
+cmu`; no KIT Motion-Language sentences are used.
+"""
+
+
+def license_text(captions: str = "all") -> str:
+    """The folder's LICENSE: CMU's terms and acknowledgement, and where its captions come from."""
+    return _LICENSE_MOTION + (_LICENSE_KIT if captions == "all" else _LICENSE_CMU_ONLY)
+
 
 def _readme(s: dict) -> str:
+    kit_citation = "; the KIT Motion-Language citation" if s["captions"] == "all" else ""
     return f"""# The CMU motion capture database in HumanML3D format
 
-Written by `python -m mld_core data prepare cmu-joints` (format version {FORMAT_VERSION}).
+Written by `python -m mld_core data prepare cmu-joints --captions {s['captions']}` (format version {FORMAT_VERSION}).
 
 - {s['prepared']} of {s['trials']} trials prepared; {len(s['skipped'])} skipped (each with its reason in `{REPORT}`).
 - {s['windows']} windows of at most {MAX_SECONDS} s + {s['mirrored']} mirrored copies (`M` + id), {s['frames']} frames
   ({s['hours']} h) at {TARGET_FPS} fps; {s['rejected_windows']} windows failed the plausibility check and were not
   written; {s['leading_frames_trimmed']} leading source frames trimmed in all.
+- Captions: {CAPTION_SOURCES[s['captions']]}.
 - {s['uncaptioned']} windows (mirrors included) have no caption (`{UNCAPTIONED}`): they train the VAE only.
 - Splits by subject: train {s['splits']['train']}, val {s['splits']['val']}, test {s['splits']['test']}.
 - `actions.json` labels each window with the first checked verb its captions ask for (`other`, `uncaptioned`).
-- Licences: see `LICENSE` (CMU's terms and acknowledgement; the KIT Motion-Language citation).
+- Licences: see `LICENSE` (CMU's terms and acknowledgement{kit_citation}).
 """
