@@ -3,6 +3,7 @@ exercised here on a tiny pack (scripts/pack_for_device.py) with the bundled VAE,
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -44,14 +45,20 @@ def _unpack_parts(out: Path, into: Path) -> list[str]:
 
 
 @pytest.fixture(scope="module")
-def sitting(tmp_path_factory):
-    """One sitting on the CPU: 0.02 minutes of VAE, then the three denoisers 0.02 minutes each."""
-    root = tmp_path_factory.mktemp("sitting")
+def pack(tmp_path_factory) -> Path:
+    """A tiny folder packed for the device, with the bundled VAE beside it."""
+    root = tmp_path_factory.mktemp("pack")
     data = _folder(root / "data")
     packed = _run([sys.executable, "scripts/pack_for_device.py", "--data", str(data), "--out", str(root / "pack"),
                    "--vae", str(BUNDLED)])
     assert packed.returncode == 0, packed.stderr[-2000:]
-    pack = root / "pack"
+    return root / "pack"
+
+
+@pytest.fixture(scope="module")
+def sitting(tmp_path_factory, pack):
+    """One sitting on the CPU: 0.02 minutes of VAE, then the three denoisers 0.02 minutes each."""
+    root = tmp_path_factory.mktemp("sitting")
     done = _run(["bash", "research/v4/device_run.sh", str(pack / "data.npz"), str(pack / "minilm"), str(pack / "vae"),
                  str(root / "out"), "0.02", "0.02", "cpu"], env={"V4_WORK": str(root / "work")})
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-2000:]
@@ -84,6 +91,27 @@ def test_the_exports_put_together_generate(sitting):
     action = MLDPipeline.from_pretrained(back / "export_den_c")
     out = action(["x"], seconds=2.0, actions=["x"], num_inference_steps=3)
     assert out.joints.shape == (1, 40, 22, 3) and np.isfinite(out.joints).all()
+
+
+def test_a_vae_from_scratch_owes_nothing_to_the_bundled_one(tmp_path, pack):
+    done = _run(["bash", "research/v4/device_run.sh", str(pack / "data.npz"), str(pack / "minilm"), "scratch",
+                 str(tmp_path / "out"), "0.02", "0", "cpu"], env={"V4_WORK": str(tmp_path / "work")})
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-2000:]
+    assert "from scratch" in done.stdout and "brings back the VAE alone" in done.stdout
+    names = _unpack_parts(tmp_path / "out", tmp_path / "back")
+    assert "vae_fp16.safetensors" in names and not any(n.startswith("export_") for n in names)
+    config = json.loads((tmp_path / "back" / "vae_train_config.json").read_text())
+    assert config["init"] is None
+    # the architecture the denoisers expect: the bundled model's latent, tensor for tensor
+    vae, bundled = load_file(tmp_path / "back" / "vae_fp16.safetensors"), load_file(BUNDLED / "vae.safetensors")
+    assert {k: v.shape for k, v in vae.items()} == {k: v.shape for k, v in bundled.items()}
+
+
+def test_a_vae_from_scratch_needs_minutes(tmp_path):
+    done = _run(["bash", "research/v4/device_run.sh", "p.npz", "minilm", "scratch", str(tmp_path / "out"), "0", "3"],
+                env={"V4_WORK": str(tmp_path / "work")})
+    assert done.returncode == 2 and "needs VAE_MINUTES above 0" in done.stderr
+    assert not (tmp_path / "work").exists()
 
 
 def test_bad_minutes_are_refused_before_anything_runs(tmp_path):

@@ -6,7 +6,9 @@
 #   research/v4/device_run.sh PACK TEXT_ENCODER_DIR VAE_DIR OUT [VAE_MINUTES] [DENOISER_MINUTES] [DEVICE]
 #
 # PACK and TEXT_ENCODER_DIR: scripts/pack_for_device.py's data.npz and minilm/; VAE_DIR: a model folder holding the
-# VAE to continue (config.json, vae.safetensors). The denoisers: a, the bundled model's architecture; b, 9 layers
+# VAE to continue (config.json, vae.safetensors), or `scratch` for a VAE from nothing (a model that must owe nothing
+# to the bundled one, such as one trained on `data prepare cmu-joints --captions cmu` alone; the architecture of
+# vae_scratch.json, the latent the denoisers expect). The denoisers: a, the bundled model's architecture; b, 9 layers
 # (MLD's depth); c, conditioned on action labels (`generate --action`); DENOISER_MINUTES 0 trains the VAE alone.
 # OUT gets the exported fp16 models and every log as one tar in parts of 15 MB (scripts and logs first, so a sitting
 # cut short still brings back what ran). The runs themselves go to $V4_WORK (default runs/v4, the data beside it).
@@ -17,6 +19,9 @@ vae_minutes="${5:-2.8}"; den_minutes="${6:-3.8}"; device="${7:-cuda}"
 for m in "$vae_minutes" "$den_minutes"; do
     [[ "$m" =~ ^[0-9]+([.][0-9]+)?$ ]] || { echo "error: minutes must be a number >= 0, got '$m'" >&2; exit 2; }
 done
+if [ "$vae_init" = scratch ] && ! [[ "$vae_minutes" =~ [1-9] ]]; then
+    echo "error: a VAE from scratch needs VAE_MINUTES above 0" >&2; exit 2
+fi
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
 cd "$here"
 export PYTHONPATH="$here${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
@@ -48,9 +53,13 @@ train() {
         > "$work/${name}_fp32.log" 2>&1 || { log "$name failed"; tail -5 "$work/${name}_fp32.log"; return 1; }
 }
 
-# 2. The VAE, fine-tuned with a GPU's batch (no VAE minutes: the carried one as it is).
+# 2. The VAE, fine-tuned with a GPU's batch (no VAE minutes: the carried one as it is), or trained from scratch.
 vae="$vae_init"
-if "$PY" -c "import sys; sys.exit(0 if float('$vae_minutes') > 0 else 1)"; then
+if [ "$vae_init" = scratch ]; then
+    log "VAE: $vae_minutes minutes from scratch"
+    train vae vae --minutes "$vae_minutes" --config research/v4/vae_scratch.json && vae="$work/vae" \
+        || { log "no VAE: nothing for the denoisers to learn"; vae=""; }
+elif "$PY" -c "import sys; sys.exit(0 if float('$vae_minutes') > 0 else 1)"; then
     log "VAE: $vae_minutes minutes from $vae_init"
     train vae vae --init "$vae_init" --minutes "$vae_minutes" --config research/v4/vae_gpu.json && vae="$work/vae"
 fi
@@ -68,7 +77,9 @@ denoiser() {  # denoiser NAME CONFIG COND
         "${encoder[@]}" > "$work/export_$name.log" 2>&1 || { log "$name: export failed"; tail -3 "$work/export_$name.log"; }
     log "$name: done"
 }
-if "$PY" -c "import sys; sys.exit(0 if float('$den_minutes') > 0 else 1)"; then
+if [ -z "$vae" ]; then
+    log "no denoisers: there is no VAE for them to learn"
+elif "$PY" -c "import sys; sys.exit(0 if float('$den_minutes') > 0 else 1)"; then
     denoiser den_a research/v4/denoiser_a.json text &
     denoiser den_b research/v4/denoiser_b.json text &
     denoiser den_c research/v4/denoiser_action.json action &
