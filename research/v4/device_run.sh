@@ -7,8 +7,8 @@
 #
 # PACK and TEXT_ENCODER_DIR: scripts/pack_for_device.py's data.npz and minilm/; VAE_DIR: a model folder holding the
 # VAE to continue (config.json, vae.safetensors), or `scratch` for a VAE from nothing (a model that must owe nothing
-# to the bundled one, such as one trained on `data prepare cmu-joints --captions cmu` alone; the architecture of
-# vae_scratch.json, the latent the denoisers expect). The denoisers: a, the bundled model's architecture; b, 9 layers
+# to the bundled one, such as one trained on `data prepare cmu-joints --captions cmu` alone; vae_gpu.json's settings
+# and the 2-token latent the denoisers expect). The denoisers: a, the bundled model's architecture; b, 9 layers
 # (MLD's depth); c, conditioned on action labels (`generate --action`); DENOISER_MINUTES 0 trains the VAE alone.
 # OUT gets the exported fp16 models and every log as one tar in parts of 15 MB (scripts and logs first, so a sitting
 # cut short still brings back what ran). The runs themselves go to $V4_WORK (default runs/v4, the data beside it).
@@ -57,7 +57,7 @@ train() {
 vae="$vae_init"
 if [ "$vae_init" = scratch ]; then
     log "VAE: $vae_minutes minutes from scratch"
-    train vae vae --minutes "$vae_minutes" --config research/v4/vae_scratch.json && vae="$work/vae" \
+    train vae vae --minutes "$vae_minutes" --latent-tokens 2 --config research/v4/vae_gpu.json && vae="$work/vae" \
         || { log "no VAE: nothing for the denoisers to learn"; vae=""; }
 elif "$PY" -c "import sys; sys.exit(0 if float('$vae_minutes') > 0 else 1)"; then
     log "VAE: $vae_minutes minutes from $vae_init"
