@@ -344,3 +344,31 @@ def test_the_vocabulary_benchmark_asks_an_action_model_by_its_labels(clips, tmp_
     assert [(r["verb"], r["wording"], r["prompts"], r["takes"]) for r in rows] == [("jump", "action", ["jump"], 2)]
     assert vocabulary.main(argv + ["--verbs", "jump,kick"]) == 2
     assert capsys.readouterr().err.strip() == "error: this action-conditioned model has no label kick"
+
+
+def test_the_vocabulary_benchmark_reads_real_windows_through_a_vae(clips, tmp_path, capsys, monkeypatch):
+    """scripts/vocabulary.py --vae-recon: per verb, the real windows' pass rate and median check value, before and
+    after the model's VAE (the ceiling of a denoiser on it); a VAE-only folder is enough."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "scripts"))
+    import vocabulary
+
+    from mld_core.data.dataset import split_ids
+    from mld_core.eval import physical
+    from mld_core.testing import tiny_model
+
+    out = tmp_path / "data"
+    assert prepare(source(tmp_path / "cmu", clips), out, capsys)[0] == 0
+    model = tiny_model(tmp_path / "tiny")
+    monkeypatch.setattr(vocabulary, "whole_trial_windows", lambda data: split_ids(data, "all"))  # every window
+    capsys.readouterr()
+    argv = ["--data", str(out), "--model", str(model), "--vae-recon", "--verbs", "jump", "--threads", "1"]
+    assert vocabulary.main(argv + ["--json", str(tmp_path / "v.json")]) == 0
+    assert "median value" in capsys.readouterr().out
+    (row,) = json.loads((tmp_path / "v.json").read_text())["rows"]
+    hop = [i for i in (out / "all.txt").read_text().split()
+           if not i.startswith("M") and "jumps" in (out / "texts" / f"{i}.txt").read_text()]
+    assert row["real_windows"] == len(hop) == 1  # too few in the test split: all splits'
+    real_ok, real_value = physical.verb_result(np.load(out / "new_joints" / f"{hop[0]}.npy"), "jump")
+    assert real_ok and real_value > 0  # the hop flies
+    assert (row["real"], row["real_median_value"]) == (1.0, pytest.approx(real_value))
+    assert row["vae_recon"] in (0.0, 1.0) and np.isfinite(row["vae_recon_median_value"])

@@ -610,6 +610,8 @@ def test_throw_is_a_fast_forward_hand(rest):
     slow = still(rest)
     slow[40:46, 21] = rest[17] + np.array([0.0, 0.0, -0.4]) + t[:, None] * np.array([0.0, 0.0, 0.05])
     assert P.throw(slow).verdict is False
+    assert P.verb_result(throw, "throw") == (True, pytest.approx(5.0, abs=0.01))  # the deciding check's value
+    assert P.verb_result(slow, "throw") == (False, pytest.approx(1.0, abs=0.01))
     back = still(rest)
     back[40:46, 21] = rest[17] - t[:, None] * np.array([0.0, 0.0, 0.25])  # flung backwards
     assert P.throw(back).verdict is False
@@ -622,3 +624,5 @@ def test_shows_knows_its_verbs(rest):
     assert not any(P.shows(still(rest), v) for v in VERBS)
     with pytest.raises(ValueError, match="no physical check for the verb"):
         P.shows(still(rest), "juggle")
+    with pytest.raises(ValueError, match="no physical check for the verb"):
+        P.verb_result(still(rest), "juggle")

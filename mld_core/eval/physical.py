@@ -579,11 +579,24 @@ SHOWN_VERBS = tuple(_VERB_SHOWS)
 
 def shows(joints, verb: str, fps: float = sk.FPS, result: dict | None = None) -> bool:
     """True when the motion shows ``verb`` (a verb of mld_core.data.verbs, or "walk" / "run")."""
+    if result is None:
+        return verb_result(joints, verb, fps)[0]
+    name, ok = _verb_check(verb)
+    return result[name].verdict in ok
+
+
+def verb_result(joints, verb: str, fps: float = sk.FPS) -> tuple[bool, float]:
+    """Whether the motion shows ``verb``, and the value of the check that decides it, in that check's unit (a throw's
+    wrist speed in m/s, a kick's held ankle height in m, ...)."""
+    name, ok = _verb_check(verb)
+    check = CHECKS[name](joints, fps)
+    return check.verdict in ok, float(check.value)
+
+
+def _verb_check(verb: str) -> tuple[str, set]:
     if verb not in _VERB_SHOWS:
         raise ValueError(f"no physical check for the verb {verb!r}; checked: {', '.join(SHOWN_VERBS)}")
-    name, ok = _VERB_SHOWS[verb]
-    check = result[name] if result is not None else CHECKS[name](joints, fps)
-    return check.verdict in ok
+    return _VERB_SHOWS[verb]
 
 
 def classify(joints, fps: float = sk.FPS) -> dict[str, Check]:
