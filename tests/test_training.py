@@ -923,3 +923,31 @@ def test_denoiser_fine_tune_grows_onto_a_grown_vae_and_generates(tmp_path):
     assert torch.allclose(new["latent_in.weight"].float(), old["latent_in.weight"].float(), atol=1e-3)
     take = MLDPipeline.from_pretrained(run)(["a person walks"], seconds=1.0, num_inference_steps=2)
     assert np.isfinite(take.joints).all() and take.joints.shape[0] == 1
+
+
+def test_label_boost_multiplies_a_labels_sampling_share_and_refuses_a_label_no_clip_has(folder, tmp_path, capsys):
+    from mld_core.training.vae import VAETrainConfig, boosted_weights
+
+    labels = ["walk"] * 8 + ["kick"] * 2
+    plain = boosted_weights(labels, 0.5, None)
+    boosted = boosted_weights(labels, 0.5, {"kick": 6})
+    assert plain[8:].sum() == pytest.approx(2 ** 0.5 / (8 ** 0.5 + 2 ** 0.5))  # 1/3 of draws by the balance
+    assert boosted[8:].sum() == pytest.approx(6 * 2 ** 0.5 / (8 ** 0.5 + 6 * 2 ** 0.5))  # 3/4 with the boost
+    assert boosted[:8].sum() + boosted[8:].sum() == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="no train clip is labelled 'kik'"):
+        boosted_weights(labels, 0.5, {"kik": 6})
+    for bad, words in (({"kick": 0}, "label_boost\\['kick'\\] must be between"), ([6], "label_boost must be"),
+                       ({}, "label_boost must be")):
+        with pytest.raises(ValueError, match=words):
+            VAETrainConfig(label_boost=bad)
+    cfg = tmp_path / "vae.json"  # the fixture's train clips alternate labels "a" and "b"
+    cfg.write_text(json.dumps({**TINY_VAE, "label_boost": {"b": 4.0}}))
+    run = tmp_path / "boost"
+    assert main(["train", "vae", "--data", str(folder), "--out", str(run), "--steps", "2", "--threads", "1",
+                 "--config", str(cfg)]) == 0
+    assert json.loads((run / "config.json").read_text())["provenance"]["vae_training"]["label_boost"] == {"b": 4.0}
+    cfg.write_text(json.dumps({**TINY_VAE, "label_boost": {"c": 4.0}}))
+    capsys.readouterr()
+    assert main(["train", "vae", "--data", str(folder), "--out", str(tmp_path / "bad"), "--steps", "1",
+                 "--config", str(cfg)]) == 2
+    assert "no train clip is labelled 'c' (labels: a, b)" in capsys.readouterr().err

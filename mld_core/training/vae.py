@@ -47,6 +47,9 @@ class VAETrainConfig:
     min_frames: int = 40
     max_frames: int = 196
     balance_power: float = 0.5
+    # {label: factor}: the sampling weight of the train clips with that action label, times factor, on top of the
+    # balance (e.g. {"kick": 6, "throw": 6}: more of the rare fast-limb clips in every batch)
+    label_boost: dict | None = None
     decay_start: float = 0.5  # cosine learning-rate decay over the second half of the budget (--steps/--minutes)
     val_every: int = 250
     val_clips: int = 200
@@ -94,6 +97,29 @@ class VAETrainConfig:
         if self.grow_latent_tokens is not None:
             self.grow_latent_tokens = inputs.int_in_range(self.grow_latent_tokens, "grow_latent_tokens", 1, 64)
         self.train_modules = checked_module_names(self.train_modules)
+        self.label_boost = checked_label_boost(self.label_boost)
+
+
+def checked_label_boost(boost) -> dict | None:
+    """``label_boost`` as {label: factor}, each factor a number from 0.01 to 1000."""
+    if boost is None:
+        return None
+    if not isinstance(boost, dict) or not boost:
+        raise inputs.InputError(f"label_boost must be a non-empty {{label: factor}} object, got {boost!r}")
+    return {str(label): inputs.number_in_range(f, f"label_boost[{label!r}]", 0.01, 1000.0) for label, f in boost.items()}
+
+
+def boosted_weights(labels: list, balance_power: float, boost: dict | None) -> np.ndarray:
+    """Sampling weights: content-balanced (common.balanced_weights), then the clips of each label in ``boost`` times
+    its factor; a boosted label no clip has is an error (a misspelt label would otherwise boost nothing)."""
+    weights = balanced_weights(labels, balance_power)
+    for label, factor in (boost or {}).items():
+        mine = np.array([l == label for l in labels])
+        if not mine.any():
+            raise inputs.InputError(f"label_boost: no train clip is labelled {label!r} "
+                                    f"(labels: {', '.join(sorted(set(labels)))})")
+        weights = np.where(mine, weights * factor, weights)
+    return weights / weights.sum()
 
 
 def feature_weights(feature_dim: int, root_weight: float) -> torch.Tensor | None:
@@ -143,12 +169,12 @@ class CropSampler:
     (on the training device where it fits, else in pinned CPU memory)."""
 
     def __init__(self, clips, mean, std, min_frames, max_frames, frames_per_batch, balance_power,
-                 clip_start_share: float = 0.0, device: torch.device | str = "cpu"):
+                 clip_start_share: float = 0.0, device: torch.device | str = "cpu", label_boost: dict | None = None):
         feats = [((c.features - mean) / std).astype(np.float32) for c in clips]
         self.lengths = np.array([len(f) for f in feats])
         self.offsets = np.concatenate([[0], np.cumsum(self.lengths)[:-1]])
         labels = [c.action or "?" for c in clips]
-        self.weights = balanced_weights(labels, balance_power)
+        self.weights = boosted_weights(labels, balance_power, label_boost)
         self.min_frames = min(min_frames, int(self.lengths.max()))
         self.max_frames = min(max_frames, int(self.lengths.max()))
         self.frames_per_batch = frames_per_batch
@@ -310,7 +336,7 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
     weights = feature_weights(cfg.vae.feature_dim, cfg.root_weight)
     weights = weights.to(rt.device) if weights is not None else None
     sampler = CropSampler(train, mean, std, cfg.min_frames, cfg.max_frames, cfg.frames_per_batch,
-                          cfg.balance_power, cfg.clip_start_share, rt.device)
+                          cfg.balance_power, cfg.clip_start_share, rt.device, cfg.label_boost)
     # the best so far, measured the way this sitting selects (a sitting that selects otherwise starts afresh)
     best = extra.get("best_mpjpe_mm", float("inf")) if extra.get("select_by", "mpjpe") == cfg.select_by else float("inf")
     actions = sorted({c.action for c in train if c.action})
