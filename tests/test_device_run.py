@@ -21,6 +21,7 @@ from test_text_encoder import needs_package
 
 REPO = Path(__file__).resolve().parents[1]
 BUNDLED = REPO / "mld_core" / "weights" / "default"
+GPU_CONFIG = REPO / "research" / "v4" / "vae_gpu.json"
 
 pytestmark = [
     pytest.mark.slow,
@@ -59,8 +60,11 @@ def pack(tmp_path_factory) -> Path:
 def sitting(tmp_path_factory, pack):
     """One sitting on the CPU: 0.02 minutes of VAE, then the three denoisers 0.02 minutes each."""
     root = tmp_path_factory.mktemp("sitting")
+    config = {**json.loads(GPU_CONFIG.read_text()), "label_boost": {"x": 6}}  # the tiny pack's one action label
+    (root / "vae.json").write_text(json.dumps(config))
     done = _run(["bash", "research/v4/device_run.sh", str(pack / "data.npz"), str(pack / "minilm"), str(pack / "vae"),
-                 str(root / "out"), "0.02", "0.02", "cpu"], env={"V4_WORK": str(root / "work")})
+                 str(root / "out"), "0.02", "0.02", "cpu"],
+                env={"V4_WORK": str(root / "work"), "V4_VAE_CONFIG": str(root / "vae.json")})
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-2000:]
     back = root / "back"
     names = _unpack_parts(root / "out", back)
@@ -74,6 +78,7 @@ def test_a_sitting_brings_back_the_vae_three_denoisers_and_their_logs(sitting):
         assert {f"export_{run}/config.json", f"export_{run}/denoiser.safetensors", f"{run}_log.jsonl"} <= set(names)
         assert f"export_{run}/vae.safetensors" not in names  # the VAE travels once, as vae_fp16
     assert {"vae_log.jsonl", "vae_train_config.json", "vae_fp16.safetensors"} <= set(names)
+    assert json.loads((back / "vae_train_config.json").read_text())["label_boost"] == {"x": 6.0}  # V4_VAE_CONFIG's
     vae, bundled = load_file(back / "vae_fp16.safetensors"), load_file(BUNDLED / "vae.safetensors")
     assert vae.keys() == bundled.keys()
     assert all(str(v.dtype) == "torch.float16" for v in vae.values() if v.is_floating_point())
@@ -119,6 +124,19 @@ def test_bad_minutes_are_refused_before_anything_runs(tmp_path):
                 env={"V4_WORK": str(tmp_path / "work")})
     assert done.returncode == 2 and "minutes must be a number" in done.stderr
     assert not (tmp_path / "work").exists()
+
+
+def test_a_missing_vae_config_is_refused_before_anything_runs(tmp_path):
+    done = _run(["bash", "research/v4/device_run.sh", "p.npz", "minilm", "vae", str(tmp_path / "out")],
+                env={"V4_WORK": str(tmp_path / "work"), "V4_VAE_CONFIG": str(tmp_path / "nope.json")})
+    assert done.returncode == 2 and "no VAE config at" in done.stderr
+    assert not (tmp_path / "work").exists() and not (tmp_path / "out").exists()
+
+
+def test_the_boosted_gpu_config_is_the_plain_one_with_kicks_and_throws_drawn_more_often():
+    boosted = json.loads((GPU_CONFIG.parent / "vae_gpu_boost.json").read_text())
+    assert boosted.pop("label_boost") == {"kick": 6, "throw": 20}
+    assert boosted == json.loads(GPU_CONFIG.read_text())
 
 
 @pytest.mark.parametrize("out", ["work", "work/out", "."])

@@ -12,6 +12,8 @@
 # (MLD's depth); c, conditioned on action labels (`generate --action`); DENOISER_MINUTES 0 trains the VAE alone.
 # OUT gets the exported fp16 models and every log as one tar in parts of 15 MB (scripts and logs first, so a sitting
 # cut short still brings back what ran). The runs themselves go to $V4_WORK (default runs/v4, the data beside it).
+# The VAE's settings are $V4_VAE_CONFIG (default research/v4/vae_gpu.json; vae_gpu_boost.json adds kicks and throws
+# drawn more often, for a pack of the merged folder).
 # Put back together, a text model is export_den_a/ with vae_fp16.safetensors copied in as vae.safetensors.
 set -uo pipefail
 pack="${1:?pack file}"; text="${2:?text encoder folder}"; vae_init="${3:?VAE folder}"; out="${4:?output folder}"
@@ -33,6 +35,8 @@ w="$(realpath -m "$work")/"; o="$(realpath -m "$out")/"
 if [[ "$o" == "$w"* || "$w" == "$o"* ]]; then
     echo "error: OUT ($out) and V4_WORK ($work) must not hold one another" >&2; exit 2
 fi
+vae_config="${V4_VAE_CONFIG:-research/v4/vae_gpu.json}"
+[ -f "$vae_config" ] || { echo "error: no VAE config at $vae_config (V4_VAE_CONFIG)" >&2; exit 2; }
 mkdir -p "$work" "$out"
 log() { echo "[$(date +%H:%M:%S)] $*"; }
 nvidia-smi -L 2>/dev/null; "$PY" -c "import torch; print('torch', torch.__version__, torch.cuda.is_available())"
@@ -57,11 +61,11 @@ train() {
 vae="$vae_init"
 if [ "$vae_init" = scratch ]; then
     log "VAE: $vae_minutes minutes from scratch"
-    train vae vae --minutes "$vae_minutes" --latent-tokens 2 --config research/v4/vae_gpu.json && vae="$work/vae" \
+    train vae vae --minutes "$vae_minutes" --latent-tokens 2 --config "$vae_config" && vae="$work/vae" \
         || { log "no VAE: nothing for the denoisers to learn"; vae=""; }
 elif "$PY" -c "import sys; sys.exit(0 if float('$vae_minutes') > 0 else 1)"; then
     log "VAE: $vae_minutes minutes from $vae_init"
-    train vae vae --init "$vae_init" --minutes "$vae_minutes" --config research/v4/vae_gpu.json && vae="$work/vae"
+    train vae vae --init "$vae_init" --minutes "$vae_minutes" --config "$vae_config" && vae="$work/vae"
 fi
 
 # 3. Three denoisers on that VAE's latents, side by side, each exported in fp16 when done.
