@@ -25,6 +25,7 @@ if [ "$vae_init" = scratch ] && ! [[ "$vae_minutes" =~ [1-9] ]]; then
     echo "error: a VAE from scratch needs VAE_MINUTES above 0" >&2; exit 2
 fi
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
+vae_config="$(realpath -m "${V4_VAE_CONFIG:-$here/research/v4/vae_gpu.json}")"  # from the caller's folder
 cd "$here"
 export PYTHONPATH="$here${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 PY="${PYTHON:-python3}"
@@ -35,7 +36,6 @@ w="$(realpath -m "$work")/"; o="$(realpath -m "$out")/"
 if [[ "$o" == "$w"* || "$w" == "$o"* ]]; then
     echo "error: OUT ($out) and V4_WORK ($work) must not hold one another" >&2; exit 2
 fi
-vae_config="${V4_VAE_CONFIG:-research/v4/vae_gpu.json}"
 [ -f "$vae_config" ] || { echo "error: no VAE config at $vae_config (V4_VAE_CONFIG)" >&2; exit 2; }
 mkdir -p "$work" "$out"
 log() { echo "[$(date +%H:%M:%S)] $*"; }
