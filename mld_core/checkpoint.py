@@ -27,6 +27,16 @@ from mld_core.take_fixes.stepping import SteppingConfig
 FORMAT = "mld-core-model"
 FORMAT_VERSION = 1
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parent / "weights" / "default"
+PROJECT_ROOT = DEFAULT_MODEL_DIR.parents[2]  # the checkout that holds mld_core
+
+
+def recorded_path(path: str | None) -> str | None:
+    """A path as a model's provenance records it: relative to the project's checkout when inside it (the bundled
+    model is ``mld_core/weights/default`` on every machine), else as given."""
+    if path is None:
+        return None
+    resolved = Path(path).resolve()
+    return resolved.relative_to(PROJECT_ROOT).as_posix() if resolved.is_relative_to(PROJECT_ROOT) else str(path)
 
 
 class CheckpointError(Exception):

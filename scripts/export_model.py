@@ -3,6 +3,10 @@
     python scripts/export_model.py RUN_DIR [--out mld_core/weights/default] [--notes notes.md] [--model-id ID]
         [--data DIR] [--vae-decoder VAE_RUN]
 
+A VAE-only run (``train vae``, no denoiser) exports as a VAE folder: its config.json, the VAE in fp16 and a card
+listing every sitting it has had (``provenance.vae_lineage``), a folder to continue from (``train vae --init FOLDER``)
+or to train denoisers on (``train denoiser --vae FOLDER``); it does not generate.
+
 --vae-decoder takes the decoder side of VAE_RUN's VAE, trained with only its decoder modules from RUN_DIR's VAE
 (``train vae --init RUN_DIR --config '{"train_modules": ["latent_positions", "decoder", "head"]}'``): the encoder,
 and so the denoiser's latents, stay RUN_DIR's; a VAE with another encoder is refused.
@@ -67,6 +71,55 @@ and dances, bows, punches, kicks, with 7-15 styles such as elderly, tired, happy
 contents fall back to the nearest ones; the folder's `coverage_index.npz` (the training captions' sentence vectors)
 lets the pipeline say so before generating (`MLDPipeline.coverage`, docs/quality.md). Not for commercial use.
 """
+
+
+VAE_CARD = """# {model_id}
+
+The VAE of a Motion Latent Diffusion model (Chen et al., CVPR 2023) alone, with no denoiser: a folder to continue
+training from (`python -m mld_core train vae --init FOLDER`) or to train denoisers on (`python -m mld_core train
+denoiser --vae FOLDER`). It does not generate from text by itself.
+
+| | |
+|---|---|
+| data | `{data}` (its sittings' data folders are listed below) |
+| licence | that of its training data: weights trained on the Bandai Namco dataset, or started from a model that was, are **CC BY-NC 4.0** (non-commercial) |
+| VAE | latent {n} x {d}; encoder/decoder {layers} layers each, d {dim}, long skips: {skip}; KL weight {kl:g} |
+| steps | {own} in its own sitting, {steps} over the {sittings} sittings below |
+| weights | fp16 safetensors, {size_mb:.1f} MB |
+
+## Training, oldest sitting first
+{training}
+
+## Measurements
+{metrics}
+"""
+
+
+def vae_sittings(config) -> list[dict]:
+    """Every sitting of a VAE folder's training, oldest first: its lineage, then the run's own."""
+    prov = config.provenance
+    own = {"model_id": config.model_id, "steps": prov.get("vae_steps"), "training": prov.get("vae_training")}
+    return [*prov.get("vae_lineage", []), own]
+
+
+def sitting_line(sitting: dict) -> str:
+    """One sitting as a card line: where it started, its steps, and its settings."""
+    training = dict(sitting.get("training") or {})
+    start = training.pop("init", None) or "nothing (from scratch)"
+    return (f"- {sitting.get('model_id')}: {sitting.get('steps')} steps from {start}; "
+            f"`{json.dumps(training, sort_keys=True)}`")
+
+
+def vae_card(config, notes: str) -> str:
+    sittings = vae_sittings(config)
+    steps = sum(int(s.get("steps") or 0) for s in sittings)
+    enc = config.vae.encoder
+    return VAE_CARD.format(model_id=config.model_id, data=(config.provenance.get("vae_training") or {}).get("data"),
+                           n=config.vae.latent_tokens, d=config.vae.latent_dim, layers=enc.layers, dim=enc.dim,
+                           skip=enc.skip, kl=config.vae.kl_weight, steps=f"{steps:,}", sittings=len(sittings),
+                           own=f"{int(sittings[-1].get('steps') or 0):,}",
+                           size_mb=sum(p.numel() for p in MotionVAE(config.vae).state_dict().values()) * 2 / 1e6,
+                           training="\n".join(sitting_line(s) for s in sittings), metrics=notes)
 
 
 def write_coverage_index(run: Path, folder: Path, config, data: Path | None) -> None:
@@ -169,13 +222,14 @@ def main(argv=None) -> int:
     except CheckpointError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    if config.denoiser is None:
-        print(f"error: {args.run} has no denoiser", file=sys.stderr)
-        return 2
+    vae_only = config.denoiser is None
     problem = out_problem(args.out, args.overwrite)
     try:
         if problem:
             raise InputError(problem)
+        if vae_only and (args.vae_decoder or args.data or args.text_encoder):
+            raise InputError(f"{args.run} is a VAE alone: --vae-decoder, --data and --text-encoder apply to a model "
+                             "with a denoiser")
         check_output_folder(args.out, "--out", staged_beside=True)
         metrics = read_notes(args.notes)
         check_data(args.data)
@@ -187,9 +241,14 @@ def main(argv=None) -> int:
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    vae, den = MotionVAE(config.vae), LatentDenoiser(config.denoiser)
-    load_weights(args.run / "vae.safetensors", vae)
-    load_weights(args.run / "denoiser.safetensors", den)
+    vae, den = MotionVAE(config.vae), (None if vae_only else LatentDenoiser(config.denoiser))
+    try:
+        load_weights(args.run / "vae.safetensors", vae)
+        if den is not None:
+            load_weights(args.run / "denoiser.safetensors", den)
+    except CheckpointError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     if args.vae_decoder is not None:
         try:
             swap_decoder(config, vae, args.vae_decoder)
@@ -201,6 +260,8 @@ def main(argv=None) -> int:
         return 2
     if args.model_id:
         config.model_id = args.model_id
+    if vae_only:
+        return write_folder(args.out, config, vae, None, vae_card(config, metrics), args.run)
     prov = config.provenance
     training = "\n".join(f"- {k}: `{json.dumps(v)}`" for k, v in prov.items())
     size = sum(p.numel() for m in (vae, den) for p in m.state_dict().values()) * 2 / 1e6
@@ -211,27 +272,33 @@ def main(argv=None) -> int:
                        steps=config.num_inference_steps, guidance=config.guidance_scale,
                        min_s=config.min_frames / config.fps, max_s=config.max_frames / config.fps, size_mb=size,
                        training=training, metrics=metrics, hardware=args.hardware)
-    made = make_parents(args.out.parent)
-    tmp = Path(tempfile.mkdtemp(dir=args.out.parent, prefix=f".{args.out.name}."))
+    return write_folder(args.out, config, vae, den, card, args.run, args.data)
+
+
+def write_folder(out: Path, config, vae, den, card: str, run: Path, data: Path | None = None) -> int:
+    """The exported folder, written beside ``out`` and then renamed into place: a failed export leaves nothing."""
+    made = make_parents(out.parent)
+    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}."))
     try:
         save_model(tmp, config, vae, den, dtype=torch.float16, card=card)
-        write_coverage_index(args.run, tmp, config, args.data)
-        if config.draft is not None:  # the Draft samples the same latents, so it serves a swapped-in decoder too
-            if (args.run / DRAFT_TEXT_WEIGHTS).is_file():
-                shutil.copyfile(args.run / DRAFT_TEXT_WEIGHTS, tmp / DRAFT_TEXT_WEIGHTS)
-            install_draft(args.run, tmp)
-        if args.out.exists():
-            shutil.rmtree(args.out)
+        if den is not None:
+            write_coverage_index(run, tmp, config, data)
+        if den is not None and config.draft is not None:  # the Draft samples the same latents: it serves a
+            if (run / DRAFT_TEXT_WEIGHTS).is_file():        # swapped-in decoder too
+                shutil.copyfile(run / DRAFT_TEXT_WEIGHTS, tmp / DRAFT_TEXT_WEIGHTS)
+            install_draft(run, tmp)
+        if out.exists():
+            shutil.rmtree(out)
         tmp.chmod(0o755)
-        tmp.rename(args.out)
+        tmp.rename(out)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp)
-        if not args.out.exists():  # a failed export leaves none of the folders it made
+        if not out.exists():  # a failed export leaves none of the folders it made
             for folder in reversed(made):
                 folder.rmdir()
-    total = sum(f.stat().st_size for f in args.out.iterdir()) / 1e6
-    print(f"wrote {args.out} ({total:.1f} MB)")
+    total = sum(f.stat().st_size for f in out.iterdir()) / 1e6
+    print(f"wrote {out} ({total:.1f} MB)")
     return 0
 
 

@@ -951,3 +951,75 @@ def test_label_boost_multiplies_a_labels_sampling_share_and_refuses_a_label_no_c
     assert main(["train", "vae", "--data", str(folder), "--out", str(tmp_path / "bad"), "--steps", "1",
                  "--config", str(cfg)]) == 2
     assert "no train clip is labelled 'c' (labels: a, b)" in capsys.readouterr().err
+
+
+def test_vae_sittings_carry_their_lineage_and_a_vae_alone_exports_to_continue_from(tmp_path, capsys):
+    """Each --init sitting records the training it started from (provenance.vae_lineage, kept on --resume); a VAE
+    run exports as a fp16 VAE folder whose card lists every sitting, which the next sitting continues from; options
+    that need a denoiser are refused in one line, with nothing written."""
+    import sys
+    from pathlib import Path
+
+    from safetensors.torch import load_file
+
+    from mld_core.checkpoint import DEFAULT_MODEL_DIR, load_config, load_weights, recorded_path
+    from mld_core.models.vae import MotionVAE
+    from mld_core.testing import tiny_model
+    from test_reliability import _h3d_folder
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    import export_model
+
+    model = tiny_model(tmp_path / "tiny")
+    data = _h3d_folder(tmp_path / "data")
+
+    def sitting(out, init, steps, *extra):
+        return main(["train", "vae", "--data", str(data), "--out", str(out), "--threads", "1", "--steps", str(steps),
+                     "--config", json.dumps({"val_every": 100, "min_frames": 16}),
+                     *(["--init", str(init)] if init else []), *extra])
+
+    def lineage(run):
+        return [(s["model_id"], s["steps"]) for s in load_config(run).provenance.get("vae_lineage", [])]
+
+    tiny_id = load_config(model).model_id
+    assert sitting(tmp_path / "first", model, 2) == 0
+    assert lineage(tmp_path / "first") == [(tiny_id, None)]  # the tiny folder records no VAE steps of its own
+    assert sitting(tmp_path / "second", tmp_path / "first", 2) == 0
+    assert lineage(tmp_path / "second") == [(tiny_id, None), ("first-vae", 2)]
+    assert sitting(tmp_path / "second", None, 3, "--resume") == 0  # a resumed run keeps where it started from
+    assert lineage(tmp_path / "second") == [(tiny_id, None), ("first-vae", 2)]
+    assert load_config(tmp_path / "second").provenance["vae_steps"] == 3
+    state_file = tmp_path / "second" / "train_state.pt"  # a train state saved before lineages were kept:
+    state = torch.load(state_file, weights_only=True)    # resuming with --init names where it started
+    state["extra"] = json.dumps({k: v for k, v in json.loads(state["extra"]).items() if k != "vae_lineage"})
+    torch.save(state, state_file)
+    (tmp_path / "second" / "config.json").unlink()  # so the sitting writes it afresh
+    assert sitting(tmp_path / "second", tmp_path / "first", 4, "--resume") == 0
+    assert lineage(tmp_path / "second") == [(tiny_id, None), ("first-vae", 2)]
+    assert sitting(tmp_path / "scratch", None, 1) == 0 and lineage(tmp_path / "scratch") == []  # from nothing
+
+    kept = tmp_path / "kept"
+    assert export_model.main([str(tmp_path / "second"), "--out", str(kept), "--model-id", "v-kept"]) == 0
+    assert sorted(p.name for p in kept.iterdir()) == ["MODEL_CARD.md", "config.json", "vae.safetensors"]
+    assert {v.dtype for v in load_file(str(kept / "vae.safetensors")).values()} == {torch.float16}
+    card = (kept / "MODEL_CARD.md").read_text()
+    assert "4 in its own sitting, 6 over the 3 sittings below" in card and "- first-vae: 2 steps from" in card and "v-kept: 4 steps" in card
+    run_vae, kept_vae = MotionVAE(load_config(tmp_path / "second").vae), MotionVAE(load_config(kept).vae)
+    load_weights(tmp_path / "second" / "vae.safetensors", run_vae)
+    load_weights(kept / "vae.safetensors", kept_vae)
+    x = torch.randn(1, 30, 263)
+    with torch.no_grad():
+        a = run_vae.decode(run_vae.encode(x, torch.tensor([30]))[0], torch.tensor([30]))
+        b = kept_vae.decode(kept_vae.encode(x, torch.tensor([30]))[0], torch.tensor([30]))
+    assert torch.allclose(a, b, atol=2e-2) and not torch.equal(a, torch.zeros_like(a))
+    assert sitting(tmp_path / "third", kept, 1) == 0  # the exported folder is where the next sitting starts
+    assert lineage(tmp_path / "third")[-1] == ("v-kept", 4) and len(lineage(tmp_path / "third")) == 3
+
+    capsys.readouterr()
+    assert export_model.main([str(tmp_path / "second"), "--out", str(tmp_path / "no"), "--data", str(data)]) == 2
+    assert "is a VAE alone" in capsys.readouterr().err and not (tmp_path / "no").exists()
+    assert export_model.main([str(tmp_path / "second"), "--out", str(kept)]) == 2  # no silent overwrite
+    assert "pass --overwrite" in capsys.readouterr().err and (kept / "vae.safetensors").is_file()
+    assert recorded_path(str(DEFAULT_MODEL_DIR)) == "mld_core/weights/default"
+    assert recorded_path(str(tmp_path)) == str(tmp_path)
+    assert load_config(tmp_path / "first").provenance["vae_training"]["init"] == str(model)

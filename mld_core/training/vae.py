@@ -20,7 +20,8 @@ import torch
 from tqdm import tqdm
 
 from mld_core import inputs
-from mld_core.checkpoint import ModelConfig, load_config, load_weights, save_json, save_weights, skeleton_info
+from mld_core.checkpoint import (ModelConfig, load_config, load_weights, recorded_path, save_json, save_weights,
+                                 skeleton_info)
 from mld_core.models.vae import MotionVAE, VAEConfig, grow_latent
 from mld_core.motion import skeleton as sk
 from mld_core.motion.features import FOOT_CONTACT, ROOT_ROT_VEL, ROOT_Y, features_to_joints
@@ -264,14 +265,29 @@ def selection_metric(record: dict, select_by: str, step: int) -> float:
     return record["val_mpjpe_mm"]
 
 
+def sittings_before(init: ModelConfig | None) -> list[dict]:
+    """The VAE training a fine-tune starts from, oldest first: the --init folder's own lineage, then that folder's
+    last sitting (its model id, steps and settings); [] for a VAE from nothing."""
+    if init is None:
+        return []
+    prov = init.provenance
+    own = {"model_id": init.model_id, "steps": prov.get("vae_steps"), "training": prov.get("vae_training")}
+    return [*prov.get("vae_lineage", []), own]
+
+
 def model_config_for(cfg: VAETrainConfig, mean, std, actions: list, model_id: str,
-                     keep_from: ModelConfig | None = None) -> ModelConfig:
+                     keep_from: ModelConfig | None = None, lineage: list | None = None) -> ModelConfig:
     """The run's model config. A fine-tuned VAE keeps the decoding settings of ``keep_from`` (the model folder it
-    started from), the repairs and the stepping, which act on its output: a fine-tune of the bundled model steps."""
+    started from), the repairs and the stepping, which act on its output: a fine-tune of the bundled model steps.
+    ``lineage`` (``sittings_before``) records the training the run started from, so a VAE carried from one machine
+    or sitting to the next still says what it has had."""
+    settings = {k: v for k, v in asdict(cfg).items() if k != "vae"}
+    provenance = {"vae_training": {**settings, "init": recorded_path(cfg.init)}}
+    if lineage:
+        provenance["vae_lineage"] = lineage
     config = ModelConfig(model_id=model_id, vae=cfg.vae, min_frames=cfg.min_frames, max_frames=cfg.vae.max_frames,
                          mean=np.asarray(mean).tolist(), std=np.asarray(std).tolist(), actions=actions,
-                         skeleton=skeleton_info() if cfg.vae.feature_dim == 263 else {},
-                         provenance={"vae_training": {k: v for k, v in asdict(cfg).items() if k != "vae"}})
+                         skeleton=skeleton_info() if cfg.vae.feature_dim == 263 else {}, provenance=provenance)
     if keep_from is not None:
         config.repair, config.stepping = keep_from.repair, keep_from.stepping
     return config
@@ -332,6 +348,8 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
     vae.to(rt.device)
     opt = torch.optim.AdamW(trained, lr=cfg.lr, weight_decay=0.0)
     step, extra = (load_train_state(out, vae, opt) if resume else (0, {}))
+    # kept in the train state; a state saved without one takes the --init given on resuming
+    lineage = extra["vae_lineage"] if resume and "vae_lineage" in extra else sittings_before(init)
     geometric = GeometricLoss(cfg, mean, std)
     weights = feature_weights(cfg.vae.feature_dim, cfg.root_weight)
     weights = weights.to(rt.device) if weights is not None else None
@@ -382,19 +400,20 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
             metric = selection_metric(record, cfg.select_by, step)
             if metric <= best or not val:
                 best = metric
-                config = model_config_for(cfg, mean, std, actions, f"{out.name}-vae", keep_from)
+                config = model_config_for(cfg, mean, std, actions, f"{out.name}-vae", keep_from, lineage)
                 config.provenance["vae_val_mpjpe_mm"] = record.get("val_mpjpe_mm")
                 config.provenance["vae_val_global_mpjpe_mm"] = record.get("val_global_mpjpe_mm")
                 config.provenance["vae_steps"] = step
                 save_weights(out / "vae.safetensors", vae)
                 save_json(out / "config.json", config.to_dict())
-            save_train_state(out, vae, opt, step, {"best_mpjpe_mm": best, "select_by": cfg.select_by})
+            save_train_state(out, vae, opt, step, {"best_mpjpe_mm": best, "select_by": cfg.select_by,
+                                                   "vae_lineage": lineage})
     bar.close()
     if rt.is_main:
         log.close()
         if not (out / "config.json").exists():
             save_weights(out / "vae.safetensors", vae)
-            config = model_config_for(cfg, mean, std, actions, f"{out.name}-vae", keep_from)
+            config = model_config_for(cfg, mean, std, actions, f"{out.name}-vae", keep_from, lineage)
             save_json(out / "config.json", config.to_dict())
     rt.barrier()
     return out
