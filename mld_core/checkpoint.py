@@ -98,6 +98,8 @@ class ModelConfig:
     side_redraws: int = 2  # a free take that misses the side its prompt names is drawn again, at most this often
     content_anchor: ContentAnchorConfig = field(default_factory=ContentAnchorConfig)  # prompts' vectors moved
     side_contrast: float = 0.0  # a sided prompt's vector pushed from its mirror's (mld_core.condition.side_contrast)
+    # a bare command ("jump") encoded as the captions word it ("a person jumps"; mld_core.condition.wording)
+    commands_as_sentences: bool = True
     draft: DraftConfig | None = None  # a Draft denoiser in draft.safetensors (pipe(..., draft=True))
     provenance: dict = field(default_factory=dict)
 
@@ -224,6 +226,8 @@ def check_config(config: ModelConfig) -> None:
         raise ValueError(f"side_redraws must be a whole number in 0..{MAX_SIDE_REDRAWS}, got {redraws!r}")
     config.content_anchor.check()
     side_contrast.check_weight(config.side_contrast)
+    if not isinstance(config.commands_as_sentences, bool):
+        raise ValueError(f"commands_as_sentences must be true or false, got {config.commands_as_sentences!r}")
     if config.draft is not None:
         _check_draft(config.draft, config.scheduler)
 

@@ -9,7 +9,8 @@ DIR is a folder written by ``python -m mld_core data prepare cmu-joints``. The t
   caption: test-split captions that ask for the verb (captions written from the whole trial; the first
            ``--captions`` of them in sorted order; from the val split, else the train split, when the test split
            has none: the row says which),
-  command: a plain command ("jump", "crawl", "climb a ladder"),
+  command: a plain command ("jump", "crawl", "climb a ladder"), read as the pipeline reads it (a model with
+           ``commands_as_sentences`` on, the default, encodes "jump" as "a person jumps"),
   user:    a description as a user writes it ("a person jumps over a puddle").
 Each prompt is generated with ``--seeds`` seeds (seeds 0..N-1) at ``--seconds``. The real rate is the check's pass
 rate on the real test windows of that verb (``--split``'s instead; all splits when it has fewer than 8). Prints one

@@ -205,7 +205,7 @@ def test_each_prompt_is_encoded_once_and_the_cache_is_bounded(pipe, monkeypatch)
     again = pipe(["turns left", "walks forward"], 1.5, seed=[0, 0])
     assert seen == [] and np.allclose(again.joints[1], first.joints[0], atol=1e-5)
     pipe(["sits down"], 1.5)
-    assert seen == ["sits down"]
+    assert seen == ["a person sits down"]  # encoded as a sentence (commands_as_sentences), kept as typed
     monkeypatch.setattr(pipe._text_cache, "SIZE", 2)
     pipe(["jumps"], 1.5)
     assert list(pipe._text_cache) == ["sits down", "jumps"]

@@ -32,6 +32,8 @@ from typing import Sequence
 
 import numpy as np
 
+from mld_core.condition.wording import SENTENCE_STARTS, SUBJECT_WORDS
+
 INDEX_NAME = "coverage_index.npz"
 FORMAT = "mld-coverage-index"
 
@@ -51,12 +53,9 @@ childish playful playfully young youthful lively energetic energetically active 
 weary wearily exhausted sleepy worn lazy lazily theatrical theatrically exaggerated showy cocky thuggish giant huge
 heavy heavily lumbering relaxed calm calmly excited excitedly slowly quickly briskly stiffly lightly strong
 """.split())
-SUBJECT_WORDS = frozenset("a an the person someone man woman".split())  # only for listing distinct neighbours
-# Words a sentence about a person starts with; a text that starts with none of them is a command ("crawl", "squat
-# down") and is given the subject every training caption has, so a command scores as its sentence does.
-SENTENCE_STARTS = SUBJECT_WORDS | frozenset("""
-somebody he she they people human figure character actor dancer guy girl boy child kid his her their this
-""".split())
+# SUBJECT_WORDS: only for listing distinct neighbours. A text that starts with none of SENTENCE_STARTS is a command
+# ("crawl", "squat down") and is given the subject every training caption has, so a command scores as its sentence
+# does (mld_core.condition.wording, which generation uses to word it as a caption).
 _WORD = re.compile(r"[a-z0-9]+(?:'[a-z]+)?")
 
 

@@ -1,6 +1,8 @@
 """A prompt's text condition: the text encoder's embedding of it, with its sentence vector moved by the model's
 conditioning tricks, in this order:
 
+0. a bare command worded as the captions word a motion (``wording.py``, config ``commands_as_sentences``): "jump" is
+   encoded as "a person jumps";
 1. the content anchor (``content_anchor.py``, config ``content_anchor``): towards the content a classifier reads in it;
 2. the side contrast (``side_contrast.py``, config ``side_contrast``): away from its mirrored wording's, when it names
    a side.
@@ -17,20 +19,22 @@ from typing import Callable
 
 import torch
 
-from mld_core.condition import side_contrast
+from mld_core.condition import side_contrast, wording
 from mld_core.condition.coverage import normalise
 from mld_core.motion.features import mirror_text
 
 
 def encode(prompts: list, encoder, config, anchor=None, coverage_index=None):
     """``encoder``'s embeddings of ``prompts`` (a TextEmbedding, one row per prompt) with their sentence vectors
-    anchored and then side-contrasted. ``config``: the model's (``content_anchor`` and ``side_contrast`` are read);
-    ``anchor``: its ContentAnchor (None: none); ``coverage_index``: its CoverageIndex (the anchor's ramp reads it)."""
+    anchored and then side-contrasted, bare commands first worded as sentences. ``config``: the model's
+    (``commands_as_sentences``, ``content_anchor`` and ``side_contrast`` are read); ``anchor``: its ContentAnchor
+    (None: none); ``coverage_index``: its CoverageIndex (the anchor's ramp reads it)."""
     def anchored(texts: list, emb):
         return anchor_vectors(texts, emb, encoder, config.content_anchor, anchor, coverage_index)
 
-    emb = anchored(prompts, encoder(prompts))
-    return contrast_sides(prompts, emb, lambda mirrored: anchored(mirrored, encoder(mirrored)).pooled,
+    texts = [wording.as_sentence(p) for p in prompts] if config.commands_as_sentences else list(prompts)
+    emb = anchored(texts, encoder(texts))
+    return contrast_sides(texts, emb, lambda mirrored: anchored(mirrored, encoder(mirrored)).pooled,
                           config.side_contrast)
 
 
