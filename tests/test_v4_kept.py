@@ -1,0 +1,75 @@
+"""The v4 training's folders the repository carries to continue from (research/v4/README.md): the VAE and the merged
+evaluator load from their folders, are stored in fp16 with a card, and give their pinned numbers on the repository's
+Bandai Namco fixture clips (a change of weights or of the code that reads them moves these)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from mld_core.checkpoint import load_config, load_weights
+from mld_core.models.vae import MotionVAE
+from mld_core.motion.features import features_to_joints
+
+V4 = Path(__file__).resolve().parents[1] / "research" / "v4"
+FIXTURES = sorted((Path(__file__).parent / "fixtures" / "bandai").glob("*.bvh"))
+PINNED_VAE_MPJPE_MM = 35.93  # the fixture clips through research/v4/vae, root-relative (bundled VAE: 28.45)
+PINNED_EVALUATOR_SIMILARITY = 0.8692  # the walk-and-turn fixture's motion embedding against its wording below
+
+
+def fixture_features(path: Path) -> np.ndarray:
+    from mld_core.data.bandai import clip_joints
+    from mld_core.motion.features import joints_to_features
+
+    return joints_to_features(clip_joints(path.read_text())).astype(np.float32)  # (T, 263)
+
+
+def fixture_recon_mpjpe_mm(folder: Path) -> float:
+    """Root-relative MPJPE (mm) of the fixture clips, each encoded and decoded (the latent's mean) by ``folder``'s
+    VAE, averaged over clips."""
+    config = load_config(folder)
+    vae = MotionVAE(config.vae).eval()
+    load_weights(folder / "vae.safetensors", vae)
+    mean, std = (np.asarray(a, np.float32) for a in config.mean_std)
+    errors = []
+    for path in FIXTURES:
+        feats = fixture_features(path)[: config.max_frames]
+        x = torch.from_numpy((feats - mean) / std)[None]  # (1, T, 263)
+        lengths = torch.tensor([x.shape[1]])
+        with torch.no_grad():
+            mu, _ = vae.encode(x, lengths)
+            recon = vae.decode(mu, lengths)[0].numpy() * std + mean  # (T, 263)
+        real, back = features_to_joints(feats), features_to_joints(recon)  # (T, 22, 3)
+        real, back = real - real[:, :1], back - back[:, :1]
+        errors.append(float(np.linalg.norm(real - back, axis=-1).mean() * 1000))
+    return float(np.mean(errors))
+
+
+def test_the_kept_vae_is_fp16_with_its_lineage_and_gives_its_pinned_reconstruction():
+    folder = V4 / "vae"
+    assert {v.dtype for v in load_file(str(folder / "vae.safetensors")).values()} == {torch.float16}
+    config = load_config(folder)
+    assert config.denoiser is None and config.vae.feature_dim == 263
+    lineage = [s["model_id"] for s in config.provenance.get("vae_lineage", [])]
+    assert lineage and lineage[0] == "mld-bandai-cpu-v3.8"  # where the first sitting started
+    card = (folder / "MODEL_CARD.md").read_text()
+    assert "CC BY-NC 4.0" in card and "sittings below" in card
+    assert fixture_recon_mpjpe_mm(folder) == pytest.approx(PINNED_VAE_MPJPE_MM, rel=1e-3)
+
+
+def test_the_merged_evaluator_is_fp16_and_gives_its_pinned_similarity():
+    from mld_core.eval.evaluator import Evaluator
+
+    folder = V4 / "evaluator"
+    weights = load_file(str(folder / "model.safetensors"))
+    assert torch.float16 in {v.dtype for v in weights.values()}
+    assert "CC BY-NC 4.0" in (folder / "EVALUATOR_CARD.md").read_text()
+    evaluator = Evaluator.from_pretrained(folder)
+    motion = evaluator.encode_motion([fixture_features(p) for p in FIXTURES if "walk-turn-left" in p.name])[0]
+    text = evaluator.encode_text(["a person walks and turns left"])[0]
+    assert float(motion @ text) == pytest.approx(PINNED_EVALUATOR_SIMILARITY, abs=1e-3)
+    assert float(motion @ evaluator.encode_text(["a person kicks"])[0]) < float(motion @ text) - 0.3
