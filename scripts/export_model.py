@@ -110,7 +110,7 @@ def sitting_line(sitting: dict) -> str:
             f"`{json.dumps(training, sort_keys=True)}`")
 
 
-def vae_card(config, notes: str) -> str:
+def vae_card(config, vae, notes: str) -> str:
     sittings = vae_sittings(config)
     steps = sum(int(s.get("steps") or 0) for s in sittings)
     enc = config.vae.encoder
@@ -118,7 +118,7 @@ def vae_card(config, notes: str) -> str:
                            n=config.vae.latent_tokens, d=config.vae.latent_dim, layers=enc.layers, dim=enc.dim,
                            skip=enc.skip, kl=config.vae.kl_weight, steps=f"{steps:,}", sittings=len(sittings),
                            own=f"{int(sittings[-1].get('steps') or 0):,}",
-                           size_mb=sum(p.numel() for p in MotionVAE(config.vae).state_dict().values()) * 2 / 1e6,
+                           size_mb=sum(p.numel() for p in vae.state_dict().values()) * 2 / 1e6,
                            training="\n".join(sitting_line(s) for s in sittings), metrics=notes)
 
 
@@ -261,7 +261,7 @@ def main(argv=None) -> int:
     if args.model_id:
         config.model_id = args.model_id
     if vae_only:
-        return write_folder(args.out, config, vae, None, vae_card(config, metrics), args.run)
+        return write_folder(args.out, config, vae, None, vae_card(config, vae, metrics), args.run)
     prov = config.provenance
     training = "\n".join(f"- {k}: `{json.dumps(v)}`" for k, v in prov.items())
     size = sum(p.numel() for m in (vae, den) for p in m.state_dict().values()) * 2 / 1e6
