@@ -592,6 +592,7 @@ def test_train_modules_trains_only_the_named_modules_and_refuses_unknown_names(t
     assert moved == ["text_proj", "token_proj"]
     saved = json.loads((run / "config.json").read_text())["provenance"]["denoiser_training"]
     assert saved["train_modules"] == ["text_proj", "token_proj"]
+    assert saved["init"] == str(model)  # outside the checkout: as given
 
     capsys.readouterr()
     bad = tmp_path / "bad"
@@ -1023,3 +1024,16 @@ def test_vae_sittings_carry_their_lineage_and_a_vae_alone_exports_to_continue_fr
     assert recorded_path(str(DEFAULT_MODEL_DIR)) == "mld_core/weights/default"
     assert recorded_path(str(tmp_path)) == str(tmp_path)
     assert load_config(tmp_path / "first").provenance["vae_training"]["init"] == str(model)
+
+
+def test_a_denoiser_run_records_paths_inside_the_checkout_relative_to_it(tmp_path):
+    """The bundled model as --init (its default) and a VAE folder in the checkout are recorded as the same text on
+    every machine; a folder elsewhere as given."""
+    from mld_core.checkpoint import DEFAULT_MODEL_DIR, PROJECT_ROOT
+    from mld_core.training.denoiser import DenoiserTrainConfig, recorded_settings
+
+    cfg = DenoiserTrainConfig(data=str(tmp_path / "data"), vae=str(PROJECT_ROOT / "research" / "v4" / "vae"),
+                              out="runs/x", init=str(DEFAULT_MODEL_DIR))
+    saved = recorded_settings(cfg)
+    assert saved["init"] == "mld_core/weights/default" and saved["vae"] == "research/v4/vae"
+    assert saved["data"] == str(tmp_path / "data") and "denoiser" not in saved

@@ -25,7 +25,7 @@ from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
 from mld_core import inputs
-from mld_core.checkpoint import load_config, load_weights, save_json, save_weights
+from mld_core.checkpoint import load_config, load_weights, recorded_path, save_json, save_weights
 from mld_core.condition.content_anchor import ContentAnchorConfig
 from mld_core.data.captions import reworded
 from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser, grow_latent, with_condition
@@ -81,6 +81,14 @@ class DenoiserTrainConfig:
         self.train_modules = checked_module_names(self.train_modules)
         if isinstance(self.denoiser, dict):
             self.denoiser = DenoiserConfig(**self.denoiser)
+
+
+def recorded_settings(cfg: DenoiserTrainConfig) -> dict:
+    """A run's settings as its model's provenance records them: the paths inside the checkout relative to it."""
+    settings = {k: v for k, v in asdict(cfg).items() if k != "denoiser"}
+    settings.update({k: recorded_path(settings[k]) for k in ("init", "vae", "data", "out")
+                     if isinstance(settings.get(k), str)})
+    return settings
 
 
 @dataclass
@@ -344,7 +352,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     config.actions = actions
     config.guidance_scale = cfg.guidance_scale
     config.content_anchor = ContentAnchorConfig()  # an anchor is built and gated per denoiser (build_content_anchor.py)
-    config.provenance = {**base.provenance, "denoiser_training": {k: v for k, v in asdict(cfg).items() if k != "denoiser"}}
+    config.provenance = {**base.provenance, "denoiser_training": recorded_settings(cfg)}
     if rt.is_main:
         shutil.copyfile(vae_dir / "vae.safetensors", out / "vae.safetensors")
         save_json(out / "train_config.json", {**asdict(cfg), "stage": "denoiser",

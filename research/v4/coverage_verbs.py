@@ -18,24 +18,30 @@ from mld_core.pipeline import MLDPipeline  # noqa: E402
 from vocabulary import COMMANDS, USER  # noqa: E402
 
 
-def main() -> int:
+def coverage_counts(pipe) -> dict:
+    """The verdicts of a loaded pipeline's coverage on the known-verb prompts and the absent motions."""
     absent = [line.strip() for line in (HERE / "absent_motions.txt").read_text().splitlines()
               if line.strip() and not line.startswith("#")]
     known = [p for table in (COMMANDS, USER) for p in table.values()]
+    k = [c.verdict for c in pipe.coverage(known)]
+    a = [c.verdict for c in pipe.coverage(absent)]
+    return {"known": len(k), "known_unknown": k.count("unknown"), "known_near": k.count("near"),
+            "absent": len(a), "absent_flagged": len(a) - a.count("known"), "absent_unknown": a.count("unknown"),
+            "absent_near": a.count("near"),
+            "known_called_unknown": [p for p, v in zip(known, k) if v == "unknown"],
+            "absent_called_known": [p for p, v in zip(absent, a) if v == "known"]}
+
+
+def main() -> int:
     for model in sys.argv[1:]:
-        pipe = MLDPipeline.from_pretrained(model)
-        k = [c.verdict for c in pipe.coverage(known)]
-        a = [c.verdict for c in pipe.coverage(absent)]
-        flagged = len(a) - a.count("known")
-        print(f"{model}: known verbs flagged unknown {k.count('unknown')}/{len(k)} (near {k.count('near')}); "
-              f"absent motions flagged {flagged}/{len(a)} = {flagged / len(a):.2f} "
-              f"(unknown {a.count('unknown')}, near {a.count('near')})")
-        for prompt, verdict in zip(known, k):
-            if verdict == "unknown":
-                print(f"  known verb called unknown: {prompt}")
-        for prompt, verdict in zip(absent, a):
-            if verdict == "known":
-                print(f"  absent motion called known: {prompt}")
+        c = coverage_counts(MLDPipeline.from_pretrained(model))
+        print(f"{model}: known verbs flagged unknown {c['known_unknown']}/{c['known']} (near {c['known_near']}); "
+              f"absent motions flagged {c['absent_flagged']}/{c['absent']} = {c['absent_flagged'] / c['absent']:.2f} "
+              f"(unknown {c['absent_unknown']}, near {c['absent_near']})")
+        for prompt in c["known_called_unknown"]:
+            print(f"  known verb called unknown: {prompt}")
+        for prompt in c["absent_called_known"]:
+            print(f"  absent motion called known: {prompt}")
     return 0
 
 
