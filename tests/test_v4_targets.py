@@ -92,5 +92,11 @@ def test_the_command_reads_measurements_already_there_and_writes_the_table(tmp_p
     printed = capsys.readouterr().out
     assert "verb jump" in printed and "merged t2m R@3" in printed
     assert json.loads((out / "targets.json").read_text())["rows"][0]["target"] == "verb jump"
+    base = tmp_path / "base"
+    base.mkdir()
+    (base / "physical.json").write_text(json.dumps(_results(captions=0.99)["physical"]))  # the only file it reads
+    assert targets.main([*argv, "--baseline", str(base)]) == 0
+    judged = {r["target"]: r["met"] for r in json.loads((out / "targets.json").read_text())["rows"]}
+    assert judged["Bandai physical pass, captions"] is False and judged["Bandai physical pass, paraphrases"] is True
     assert targets.main([*argv, "--baseline", str(tmp_path / "nowhere")]) == 2
     assert "holds no measurements" in capsys.readouterr().err
