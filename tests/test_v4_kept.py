@@ -4,6 +4,7 @@ Bandai Namco fixture clips (a change of weights or of the code that reads them m
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -85,7 +86,7 @@ def test_the_kept_text_model_is_fp16_generates_and_records_no_machine_path():
         assert {v.dtype for v in load_file(str(folder / name)).values()} == {torch.float16}
     card, config = (folder / "MODEL_CARD.md").read_text(), (folder / "config.json").read_text()
     assert "CC BY-NC 4.0" in card and "mocap.cs.cmu.edu" in card
-    assert not any(root in text for text in (card, config) for root in ("/work/", "/home/", "/tmp/"))
+    assert not re.search(r'"/[A-Za-z]', config + card)  # no absolute path recorded in the provenance
     pipe = MLDPipeline.from_pretrained(folder)
     assert pipe.config.denoiser.cond == "text"
     out = pipe(["a person squats down"], seconds=2.0, seed=0, num_variants=2)

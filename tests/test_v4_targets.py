@@ -100,3 +100,5 @@ def test_the_command_reads_measurements_already_there_and_writes_the_table(tmp_p
     assert judged["Bandai physical pass, captions"] is False and judged["Bandai physical pass, paraphrases"] is True
     assert targets.main([*argv, "--baseline", str(tmp_path / "nowhere")]) == 2
     assert "holds no measurements" in capsys.readouterr().err
+    assert targets.main([*argv[:-1], str(data["cmu"])]) == 2  # --out a data folder
+    assert "is a data folder" in capsys.readouterr().err and not (data["cmu"] / "targets.json").exists()

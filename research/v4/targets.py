@@ -179,6 +179,9 @@ def main(argv=None) -> int:
         if not folder.is_dir():
             print(f"error: {flag} {folder} is not a folder", file=sys.stderr)
             return 2
+    if args.out.resolve() in {args.bandai.resolve(), args.cmu.resolve(), args.merged.resolve()}:
+        print(f"error: --out {args.out} is a data folder: give the measurements a folder of their own", file=sys.stderr)
+        return 2
     if args.baseline is not None and not (args.baseline / "physical.json").is_file():
         print(f"error: --baseline {args.baseline} holds no measurements of this command", file=sys.stderr)
         return 2
