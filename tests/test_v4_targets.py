@@ -102,3 +102,16 @@ def test_the_command_reads_measurements_already_there_and_writes_the_table(tmp_p
     assert "holds no measurements" in capsys.readouterr().err
     assert targets.main([*argv[:-1], str(data["cmu"])]) == 2  # --out a data folder
     assert "is a data folder" in capsys.readouterr().err and not (data["cmu"] / "targets.json").exists()
+
+
+def test_the_kept_v38_baseline_reads_as_the_readme_gives_it():
+    """research/v4/baseline_v38: v3.8's physical checks by this command, kept so a model is judged without measuring
+    v3.8 again."""
+    targets = _script()
+    base = targets.read_measurements(SCRIPT.parent / "baseline_v38", ("physical",))["physical"]
+    assert base["model_id"] == "mld-bandai-cpu-v3.8" and base["seeds"] == 4
+    rates = targets._physical_rates(base)
+    assert round(rates["captions"][0], 3) == 0.951 and round(rates["paraphrases"][0], 3) == 0.911
+    assert rates["captions"][1] == 768 and targets._turns(base) == (1.0, 128)
+    met = _met(targets.judge(_results(captions=0.951, paraphrases=0.80), {"physical": base}))
+    assert met["Bandai physical pass, captions"] and not met["Bandai physical pass, paraphrases"]

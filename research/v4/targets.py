@@ -11,9 +11,10 @@ interrupted run resumes):
   t2m_merged.json  evaluate t2m on the merged folder with the merged evaluator (research/v4/evaluator);
   t2m_bandai.json  evaluate t2m on the Bandai folder with the bundled evaluator.
 Then prints each target, its value, its bar and whether it is met, and writes DIR/targets.json. BASE_DIR is the DIR of
-this command on the model the issue compares against (the bundled v3.8; only its physical.json is read): the Bandai
-pass rates and the turns are met when within noise of it (the 95% interval of the difference reaches zero). Speed (scripts/bench_addon.py) and the
-extension zip's size (build_addon.py) are measured by their own commands. A measurement, not a test.
+this command on the model the issue compares against (the bundled v3.8; only its physical.json is read, and
+research/v4/baseline_v38 keeps v3.8's): the Bandai pass rates and the turns are met when within noise of it (the 95%
+interval of the difference reaches zero). Speed (scripts/bench_addon.py) and the extension zip's size
+(build_addon.py) are measured by their own commands. A measurement, not a test.
 """
 
 from __future__ import annotations
