@@ -46,11 +46,11 @@ from mld_core.training.draft import DRAFT_WEIGHTS, install_draft  # noqa: E402
 
 CARD = """# {model_id}
 
-Motion Latent Diffusion (Chen et al., CVPR 2023) text-to-motion model, trained from scratch on {hardware}.
+Motion Latent Diffusion (Chen et al., CVPR 2023) {cond}-to-motion model, {origin} on {hardware}.
 
 | | |
 |---|---|
-| data | Bandai Namco Research Motion dataset (3,076 BVH clips + left/right mirrors, 20 fps, HumanML3D 263-d features) |
+| data | {data} |
 | licence | **CC BY-NC 4.0** (non-commercial), inherited from the training data; attribution: Bandai Namco Research Inc., Kobayashi et al. 2023, "Motion Capture Dataset for Practical Use of AI-based Motion Editing and Stylization" |
 | text encoder | all-MiniLM-L6-v2 (frozen; Apache-2.0), pooled vector + {pool} attention-pooled token features |
 | VAE | latent {n} x {d}; encoder/decoder {vae_layers} layers each, d {d}, 4 heads, ff 1024, long skips: {skip} |
@@ -64,7 +64,10 @@ Motion Latent Diffusion (Chen et al., CVPR 2023) text-to-motion model, trained f
 
 ## Measurements
 {metrics}
+{limits}"""
 
+BANDAI_DATA = "Bandai Namco Research Motion dataset (3,076 BVH clips + left/right mirrors, 20 fps, HumanML3D 263-d features)"
+BANDAI_LIMITS = """
 ## Limits
 Trained on 24 content classes of one dataset (walking, running, turning, waving and raising hands, a few gestures
 and dances, bows, punches, kicks, with 7-15 styles such as elderly, tired, happy, feminine). Prompts far from those
@@ -93,6 +96,18 @@ denoiser --vae FOLDER`). It does not generate from text by itself.
 ## Measurements
 {metrics}
 """
+
+
+def card_origin(config) -> str:
+    """How the card's first line says the model came about: from scratch, or fine-tuned from the weights its
+    Training section names."""
+    training = config.provenance.get("denoiser_training") or {}
+    return "fine-tuned from the weights named under Training" if training.get("init") else "trained from scratch"
+
+
+def card_limits(notes: str) -> str:
+    """The Bandai model's Limits section, unless the notes hold their own."""
+    return "" if "## Limits" in notes else BANDAI_LIMITS
 
 
 def vae_sittings(config) -> list[dict]:
@@ -212,6 +227,9 @@ def main(argv=None) -> int:
     ap.add_argument("--vae-decoder", type=Path, default=None, help="a VAE run whose decoder side replaces the run's "
                     "(its encoder must be the run's)")
     ap.add_argument("--hardware", default="two CPU cores", help="what the card says it was trained on")
+    ap.add_argument("--data-description", default=BANDAI_DATA, metavar="TEXT",
+                    help="the card's data row (default: the Bandai Namco dataset's); notes with a '## Limits' "
+                         "section replace the Bandai model's Limits too")
     ap.add_argument("--text-encoder", default=None, metavar="JSON",
                     help="the text encoder the exported config names (default: the run's), e.g. "
                          "'{\"kind\": \"minilm\"}' for a run trained with a copy cut to its captions "
@@ -271,7 +289,8 @@ def main(argv=None) -> int:
                        cond=config.denoiser.cond, length=config.denoiser.length_conditioning,
                        steps=config.num_inference_steps, guidance=config.guidance_scale,
                        min_s=config.min_frames / config.fps, max_s=config.max_frames / config.fps, size_mb=size,
-                       training=training, metrics=metrics, hardware=args.hardware)
+                       training=training, metrics=metrics, hardware=args.hardware, origin=card_origin(config),
+                       data=args.data_description, limits=card_limits(metrics))
     return write_folder(args.out, config, vae, den, card, args.run, args.data)
 
 

@@ -1037,3 +1037,34 @@ def test_a_denoiser_run_records_paths_inside_the_checkout_relative_to_it(tmp_pat
     saved = recorded_settings(cfg)
     assert saved["init"] == "mld_core/weights/default" and saved["vae"] == "research/v4/vae"
     assert saved["data"] == str(tmp_path / "data") and "denoiser" not in saved
+
+
+def test_export_model_card_says_where_the_model_came_from_and_takes_the_notes_limits(tmp_path):
+    """The card's first line says fine-tuned when the denoiser started from weights, its data row is
+    --data-description's, and notes with their own Limits replace the Bandai model's (one Limits section)."""
+    import sys
+    from pathlib import Path
+
+    from mld_core.testing import tiny_model
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    import export_model
+
+    model = tiny_model(tmp_path / "tiny")
+    config = json.loads((model / "config.json").read_text())
+    config["provenance"]["denoiser_training"] = {"init": "research/v4/text_model"}
+    (model / "config.json").write_text(json.dumps(config))
+    notes = tmp_path / "notes.md"
+    notes.write_text("## Measurements of this run\nnone\n\n## Limits\nKicks are weak.\n")
+    out = tmp_path / "out"
+    assert export_model.main([str(model), "--out", str(out), "--notes", str(notes),
+                              "--data-description", "Bandai + CMU, 20.4 h"]) == 0
+    card = (out / "MODEL_CARD.md").read_text()
+    assert "fine-tuned from the weights named under Training" in card and "| data | Bandai + CMU, 20.4 h |" in card
+    assert card.count("## Limits") == 1 and "Kicks are weak." in card and "24 content classes" not in card
+    del config["provenance"]["denoiser_training"]
+    (model / "config.json").write_text(json.dumps(config))
+    assert export_model.main([str(model), "--out", str(tmp_path / "plain")]) == 0
+    card = (tmp_path / "plain" / "MODEL_CARD.md").read_text()
+    assert "trained from scratch on two CPU cores" in card and "3,076 BVH clips" in card
+    assert card.count("## Limits") == 1 and "24 content classes" in card
