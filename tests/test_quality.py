@@ -214,6 +214,14 @@ def test_index_round_trip_and_folder_without_index(tmp_path):
     walk, juggle = pipe.coverage(["A person walks.", "a person juggles"])
     assert walk.verdict == "known" and walk.nearest[0][0] == "a person walks."
     assert juggle.verdict == "unknown" and juggle.score < 0.9
+    (collapse,) = pipe.coverage("a person collapses in a heap")  # a verb of no known content: unknown
+    assert collapse.verdict == "unknown" and pipe.coverage_index.contents_named("a person collapses") == []
+    index.known_contents = ["on_ground", "run", "walk"]  # a model that knows falls: named by its verb, near at least
+    index.save(model / coverage.INDEX_NAME)
+    pipe = MLDPipeline.from_pretrained(model)
+    (collapse,) = pipe.coverage("a person collapses in a heap")
+    assert collapse.verdict == "near" and collapse.score < 0.9 and collapse.warning() == ""
+    assert pipe.coverage("a person juggles")[0].verdict == "unknown"
     (model / coverage.INDEX_NAME).write_bytes(b"not an index")
     with pytest.raises(CheckpointError, match="cannot read the coverage index"):
         MLDPipeline.from_pretrained(model)

@@ -9,6 +9,11 @@ the prompt to its nearest training caption), a verdict and the 3 nearest caption
 - ``near``: NEAR_MIN <= score < KNOWN_MIN: related wording, possibly a different motion;
 - ``unknown``: score < NEAR_MIN: nothing like it in the training data; expect the nearest known motion.
 
+A prompt that asks for one of the model's known contents by a checked verb's words (``mld_core.data.verbs``: "a
+person collapses" asks for on_ground) is ``near`` at least, however its sentence scores: a model trained on that
+content is never said not to have learned it. The verbs only count where they are the model's contents (a model
+of the 24 Bandai contents knows kicks, not throws).
+
 Side words (left/right) and style words (tired, happy, elderly, ...) are removed from prompt and captions alike
 before they are encoded (:func:`normalise`), so they can never flip a verdict: "a tired person jumps" scores
 exactly as "a person jumps"; a command without a subject is given one ("jump" is compared as "a person jump"), so
@@ -133,9 +138,17 @@ class CoverageIndex:
             top = _distinct(np.argsort(-row, kind="stable")[: 8 * NEAREST], self.captions)[:NEAREST]
             score = float(np.clip(row[top[0]], 0.0, 1.0)) if len(top) else 0.0
             nearest = [(self.captions[i], float(row[i]), self.contents[i]) for i in top]
-            out.append(Coverage(prompt, score, verdict_for(score, *self.thresholds), nearest,
-                                list(self.known_contents)))
+            verdict = verdict_for(score, *self.thresholds)
+            if verdict == "unknown" and self.contents_named(prompt):
+                verdict = "near"
+            out.append(Coverage(prompt, score, verdict, nearest, list(self.known_contents)))
         return out
+
+    def contents_named(self, prompt: str) -> list[str]:
+        """The known contents ``prompt`` asks for by a checked verb's words (``mld_core.data.verbs``)."""
+        from mld_core.data.verbs import verbs_in
+
+        return [verb for verb in verbs_in(prompt) if verb in self.known_contents]
 
     def nearest_scores(self, vectors: np.ndarray) -> np.ndarray:
         """(B,) the cosine of each normalised prompt's unit vector (B, D) to its nearest training caption, in [0, 1]."""
