@@ -18,7 +18,7 @@ from mld_core.motion.features import features_to_joints
 
 V4 = Path(__file__).resolve().parents[1] / "research" / "v4"
 FIXTURES = sorted((Path(__file__).parent / "fixtures" / "bandai").glob("*.bvh"))
-PINNED_VAE_MPJPE_MM = 31.28  # the fixture clips through research/v4/vae, root-relative (bundled VAE: 28.45)
+PINNED_VAE_MPJPE_MM = 32.50  # the fixture clips through research/v4/vae, root-relative (bundled VAE: 28.45)
 PINNED_EVALUATOR_SIMILARITY = 0.8692  # the walk-and-turn fixture's motion embedding against its wording below
 
 
@@ -96,7 +96,7 @@ def test_the_kept_text_model_is_fp16_generates_and_records_no_machine_path():
 
 def test_the_kept_action_model_is_fp16_generates_by_label_and_refuses_an_unknown_one():
     """research/v4/action_model: conditioned on the action labels of the merged folder (``generate --action jump``),
-    in fp16 on the third sitting of research/v4/vae; a label it was not trained on is refused by name."""
+    in fp16 on the fourth sitting of research/v4/vae; a label it was not trained on is refused by name."""
     from mld_core.pipeline import MLDPipeline
 
     folder = V4 / "action_model"
