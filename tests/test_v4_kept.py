@@ -18,7 +18,7 @@ from mld_core.motion.features import features_to_joints
 
 V4 = Path(__file__).resolve().parents[1] / "research" / "v4"
 FIXTURES = sorted((Path(__file__).parent / "fixtures" / "bandai").glob("*.bvh"))
-PINNED_VAE_MPJPE_MM = 32.50  # the fixture clips through research/v4/vae, root-relative (bundled VAE: 28.45)
+PINNED_VAE_MPJPE_MM = 33.04  # the fixture clips through research/v4/vae, root-relative (bundled VAE: 28.45)
 PINNED_EVALUATOR_SIMILARITY = 0.8692  # the walk-and-turn fixture's motion embedding against its wording below
 
 
