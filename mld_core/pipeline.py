@@ -29,6 +29,7 @@ from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, Checkpoi
                                  load_weights)
 from mld_core.condition import content_anchor
 from mld_core.condition import text as text_condition
+from mld_core.condition import verb_hint
 from mld_core.condition.coverage import INDEX_NAME, load_for_model, unavailable
 from mld_core.decode import LatentDecoder
 from mld_core.eval.quality import REAL_JERK_P95, seam_jerk
@@ -308,7 +309,8 @@ class MLDPipeline:
         if kind == "text":
             text = self.text_embeddings(prompts, draft=draft)
             text = type(text)(**{k: v.to(self.device) for k, v in vars(text).items()})
-            cond = denoiser.condition_tokens(B, text=text)
+            verbs = verb_hint.verb_ids(prompts, denoiser.config.verb_hints, self.device)  # (B,), 0: none named
+            cond = denoiser.condition_tokens(B, text=text, verbs=verbs)
         elif kind == "action":
             ids = torch.tensor([self._action_id(a) for a in actions], device=self.device)
             cond = denoiser.condition_tokens(B, actions=ids)

@@ -54,7 +54,7 @@ Motion Latent Diffusion (Chen et al., CVPR 2023) {cond}-to-motion model, {origin
 | licence | **CC BY-NC 4.0** (non-commercial), inherited from the training data; attribution: Bandai Namco Research Inc., Kobayashi et al. 2023, "Motion Capture Dataset for Practical Use of AI-based Motion Editing and Stylization" |
 | text encoder | all-MiniLM-L6-v2 (frozen; Apache-2.0), pooled vector + {pool} attention-pooled token features |
 | VAE | latent {n} x {d}; encoder/decoder {vae_layers} layers each, d {d}, 4 heads, ff 1024, long skips: {skip} |
-| denoiser | {den_layers} layers, d {den_d}, condition: {cond}, target-length conditioning: {length} |
+| denoiser | {den_layers} layers, d {den_d}, condition: {reads}, target-length conditioning: {length} |
 | sampling | DDIM {steps} steps, classifier-free guidance {guidance} |
 | lengths | {min_s:g} s to {max_s:g} s at 20 fps |
 | weights | fp16 safetensors, {size_mb:.1f} MB |
@@ -96,6 +96,13 @@ denoiser --vae FOLDER`). It does not generate from text by itself.
 ## Measurements
 {metrics}
 """
+
+
+def condition_kind(denoiser) -> str:
+    """The card's name for what the denoiser reads: "text", "action", or "text + verb hint (jump, ...)"."""
+    if denoiser.verb_hints:
+        return f"{denoiser.cond} + verb hint ({', '.join(denoiser.verb_hints)})"
+    return denoiser.cond
 
 
 def card_origin(config) -> str:
@@ -286,7 +293,7 @@ def main(argv=None) -> int:
     card = CARD.format(model_id=config.model_id, pool=config.denoiser.text_pool_tokens, n=config.vae.latent_tokens,
                        d=config.vae.latent_dim, vae_layers=config.vae.encoder.layers, skip=config.vae.encoder.skip,
                        den_layers=config.denoiser.transformer.layers, den_d=config.denoiser.transformer.dim,
-                       cond=config.denoiser.cond, length=config.denoiser.length_conditioning,
+                       cond=config.denoiser.cond, reads=condition_kind(config.denoiser), length=config.denoiser.length_conditioning,
                        steps=config.num_inference_steps, guidance=config.guidance_scale,
                        min_s=config.min_frames / config.fps, max_s=config.max_frames / config.fps, size_mb=size,
                        training=training, metrics=metrics, hardware=args.hardware, origin=card_origin(config),

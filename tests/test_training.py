@@ -33,17 +33,16 @@ def _walk(T: int, speed: float, arm: float) -> np.ndarray:
     return joints
 
 
-@pytest.fixture(scope="module")
-def folder(tmp_path_factory):
-    root = tmp_path_factory.mktemp("data")
+def _write_folder(root, captions=lambda k: f"a person walks {k}#a/DET#0.0#0.0\nsomeone strolls#x#0.0#0.0\n"):
+    """Eight tiny clips with ``captions(k)`` as clip k's texts file; six train, two val, labels "a" and "b"."""
     for sub in ("new_joint_vecs", "texts"):
-        (root / sub).mkdir()
+        (root / sub).mkdir(parents=True)
     ids, feats = [], []
     for k in range(8):
         cid = f"clip{k}"
         f = joints_to_features(_walk(50 + 5 * k, speed=0.5 + 0.2 * (k % 2), arm=0.3 * (k % 3)))
         np.save(root / "new_joint_vecs" / f"{cid}.npy", f)
-        (root / "texts" / f"{cid}.txt").write_text(f"a person walks {k}#a/DET#0.0#0.0\nsomeone strolls#x#0.0#0.0\n")
+        (root / "texts" / f"{cid}.txt").write_text(captions(k))
         ids.append(cid)
         feats.append(f)
     mean, std = mean_std(feats)
@@ -53,6 +52,11 @@ def folder(tmp_path_factory):
     (root / "val.txt").write_text("\n".join(ids[6:]))
     (root / "actions.json").write_text(json.dumps({"classes": ["a", "b"], "clips": {c: "ab"[i % 2] for i, c in enumerate(ids)}}))
     return root
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    return _write_folder(tmp_path_factory.mktemp("data"))
 
 
 def test_lr_schedule_and_budget():
@@ -1068,3 +1072,39 @@ def test_export_model_card_says_where_the_model_came_from_and_takes_the_notes_li
     card = (tmp_path / "plain" / "MODEL_CARD.md").read_text()
     assert "trained from scratch on two CPU cores" in card and "3,076 BVH clips" in card
     assert card.count("## Limits") == 1 and "24 content classes" in card
+
+
+def test_train_denoiser_with_verb_hints_from_a_text_run(tmp_path):
+    """`train denoiser --init TEXT_RUN` with verb_hints: the run reads every checked verb, starts as the text run
+    (the shared weights carried over), learns vectors for the verbs its captions name and none for the others;
+    continued without hints it drops them; an action run refuses them with a one-line message."""
+    from safetensors.torch import load_file
+
+    from mld_core.data.verbs import VERBS
+
+    data = _write_folder(tmp_path / "data", lambda k: f"a person {('jumps', 'kicks', 'walks')[k % 3]} {k}#a/DET#0.0#0.0\n")
+    vae, text, hinted = tmp_path / "vae", tmp_path / "text", tmp_path / "hinted"
+    assert main(["train", "vae", "--data", str(data), "--out", str(vae), "--steps", "2", "--threads", "1",
+                 "--config", json.dumps(TINY_VAE)]) == 0
+    assert main(["train", "denoiser", "--data", str(data), "--vae", str(vae), "--out", str(text), "--steps", "2",
+                 "--threads", "1", "--config", json.dumps(TINY_DEN)]) == 0
+    over = {k: v for k, v in TINY_DEN.items() if k != "denoiser"}
+    assert main(["train", "denoiser", "--data", str(data), "--vae", str(vae), "--out", str(hinted), "--init",
+                 str(text), "--steps", "20", "--lr", "3e-3", "--threads", "1",
+                 "--config", json.dumps({**over, "verb_hints": True, "verb_hint_dropout": 0.0})]) == 0
+    config = json.loads((hinted / "config.json").read_text())
+    assert config["denoiser"]["verb_hints"] == list(VERBS)
+    rows = load_file(str(hinted / "denoiser.safetensors"))["verb_embedding.weight"].float().abs().sum(1)
+    named = {1 + VERBS.index("jump"), 1 + VERBS.index("kick")}
+    assert all(rows[i] > 0 for i in named) and all(rows[i] == 0 for i in range(len(rows)) if i not in named)
+    out = tmp_path / "take.npz"
+    assert main(["generate", "a person jumps", "--model", str(hinted), "--seconds", "1.5", "--steps", "2",
+                 "--out", str(out)]) == 0
+    assert np.isfinite(np.load(out)["joints"]).all()
+    plain = tmp_path / "plain"
+    assert main(["train", "denoiser", "--data", str(data), "--vae", str(vae), "--out", str(plain), "--init",
+                 str(hinted), "--steps", "1", "--threads", "1", "--config", json.dumps(over)]) == 0
+    assert json.loads((plain / "config.json").read_text())["denoiser"]["verb_hints"] == []
+    assert main(["train", "denoiser", "--data", str(data), "--vae", str(vae), "--out", str(tmp_path / "act"),
+                 "--cond", "action", "--steps", "1", "--threads", "1",
+                 "--config", json.dumps({"verb_hints": True})]) == 2

@@ -5,12 +5,15 @@ the paper's default), or [timestep ; latent tokens] attending to the condition t
 
 Conditions (``cond``): "text" - the frozen sentence encoder's pooled vector as one token, plus ``text_pool_tokens``
 tokens attention-pooled from its per-token features (the pooled vector alone barely tells "left" from "right");
-"action" - a learned embedding per class; "none" - unconditional. Every kind has a learned null condition used for
+"action" - a learned embedding per class; "none" - unconditional. A text denoiser with ``verb_hints`` also reads the
+checked verb the prompt names (``mld_core.condition.verb_hint``): a learned vector per verb added to its first
+condition token, zero for a prompt naming none (the sentence alone then, as without hints). Every kind has a learned null condition used for
 classifier-free guidance (condition dropout in training, the unconditional branch at sampling).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 
 import torch
@@ -29,6 +32,7 @@ class DenoiserConfig:
     text_pool_tokens: int = 4  # 0: pooled vector only
     max_text_tokens: int = 32  # token features beyond this are not pooled (the same cut in training and sampling)
     num_actions: int = 0
+    verb_hints: list = field(default_factory=list)  # text only: the checked verbs read as hints (id = 1 + index)
     length_conditioning: bool = True
     max_frames: int = 196
     cond_dropout: float = 0.1
@@ -42,6 +46,9 @@ class DenoiserConfig:
             raise ValueError(f"cond must be text, action or none, got {self.cond!r}")
         if self.cond == "action" and self.num_actions < 1:
             raise ValueError("an action-conditioned denoiser needs num_actions >= 1")
+        self.verb_hints = list(self.verb_hints)
+        if self.verb_hints and self.cond != "text":
+            raise ValueError("verb hints go with a text-conditioned denoiser only")
 
     @property
     def cond_tokens(self) -> int:
@@ -132,6 +139,9 @@ class LatentDenoiser(nn.Module):
             if config.text_pool_tokens:
                 self.token_proj = nn.Linear(config.text_dim, d)
                 self.token_pool = AttentionPool(d, config.transformer.heads, config.text_pool_tokens)
+            if config.verb_hints:  # row 0 (no verb named) stays zero; the others start at zero: a warm start is unchanged
+                self.verb_embedding = nn.Embedding(1 + len(config.verb_hints), d, padding_idx=0)
+                nn.init.zeros_(self.verb_embedding.weight)
         elif config.cond == "action":
             self.action_embedding = nn.Embedding(config.num_actions, d)
         self.null_condition = nn.Parameter(torch.randn(config.cond_tokens, d) * 0.02)
@@ -143,9 +153,11 @@ class LatentDenoiser(nn.Module):
 
     # -- conditions -------------------------------------------------------------------------------------------
     def condition_tokens(self, batch_size: int, *, text=None, actions: torch.Tensor | None = None,
-                         drop: torch.Tensor | None = None) -> torch.Tensor:
+                         verbs: torch.Tensor | None = None, drop: torch.Tensor | None = None) -> torch.Tensor:
         """The condition as tokens (B, C, d). ``text`` is a TextEmbedding (pooled, tokens, mask); ``actions`` (B,)
-        class ids; ``drop`` (B,) bool replaces the condition with the learned null condition (guidance, dropout)."""
+        class ids; ``verbs`` (B,) verb-hint ids (``mld_core.condition.verb_hint``; None: no verb named, and ignored by
+        a denoiser without hints); ``drop`` (B,) bool replaces the condition with the learned null condition
+        (guidance, dropout)."""
         cfg = self.config
         null = self.null_condition.expand(batch_size, -1, -1)  # (B, C, d)
         if cfg.cond == "none":
@@ -159,6 +171,9 @@ class LatentDenoiser(nn.Module):
                 words = self.token_pool.pool_projected(text.tokens[:, :L].to(null.dtype), text.mask[:, :L],
                                                        self.token_proj)  # (B, K, d)
                 cond = torch.cat([cond, words], dim=1)  # (B, 1 + K, d)
+            if cfg.verb_hints and verbs is not None:
+                hint = self.verb_embedding(verbs).to(cond.dtype)[:, None]  # (B, 1, d)
+                cond = torch.cat([cond[:, :1] + hint, cond[:, 1:]], dim=1)
         else:
             if actions is None:
                 raise ValueError("an action-conditioned denoiser needs action ids")
@@ -199,7 +214,7 @@ class LatentDenoiser(nn.Module):
 
 
 # The layers of one condition kind (text projections and pool, the class embedding): never carried to another.
-CONDITION_LAYERS = ("text_proj.", "token_proj.", "token_pool.", "action_embedding.")
+CONDITION_LAYERS = ("text_proj.", "token_proj.", "token_pool.", "action_embedding.", "verb_embedding.")
 
 
 def with_condition(denoiser: LatentDenoiser, config: DenoiserConfig, seed: int = 0) -> LatentDenoiser:
@@ -225,6 +240,24 @@ def with_condition(denoiser: LatentDenoiser, config: DenoiserConfig, seed: int =
     else:
         kept["cond_positions"] = _first_rows(old["cond_positions"], new["cond_positions"], c_new)
     target.load_state_dict({**new, **kept})
+    return target
+
+
+def with_verb_hints(denoiser: LatentDenoiser, verbs: Sequence[str]) -> LatentDenoiser:
+    """A copy of the text denoiser ``denoiser`` reading hints for ``verbs``: every weight carried over, the hint
+    vectors of verbs it already reads kept and the others zero, so before training it makes what ``denoiser``
+    makes."""
+    config = DenoiserConfig(**{**denoiser.config.to_dict(), "verb_hints": list(verbs)})
+    target = LatentDenoiser(config)
+    state = {k: v for k, v in denoiser.state_dict().items() if not k.startswith("verb_embedding.")}
+    if verbs:
+        rows = target.verb_embedding.weight.detach().clone()  # (1 + V, d), zero
+        old = denoiser.config.verb_hints
+        for i, verb in enumerate(verbs):
+            if verb in old:
+                rows[1 + i] = denoiser.verb_embedding.weight[1 + old.index(verb)]
+        state["verb_embedding.weight"] = rows
+    target.load_state_dict(state)
     return target
 
 

@@ -116,8 +116,9 @@ def lr_factor(progress: float, decay_start: float, floor: float = 0.1) -> float:
 
 
 def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
+    """Every parameter group's rate: ``lr`` times the group's ``lr_scale`` (1 when it has none)."""
     for group in optimizer.param_groups:
-        group["lr"] = lr
+        group["lr"] = lr * group.get("lr_scale", 1.0)
 
 
 def checked_module_names(modules) -> list | None:

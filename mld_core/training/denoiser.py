@@ -26,9 +26,11 @@ from tqdm import tqdm
 
 from mld_core import inputs
 from mld_core.checkpoint import load_config, load_weights, recorded_path, save_json, save_weights
+from mld_core.condition import verb_hint
 from mld_core.condition.content_anchor import ContentAnchorConfig
 from mld_core.data.captions import reworded
-from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser, grow_latent, with_condition
+from mld_core.data.verbs import VERBS
+from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser, grow_latent, with_condition, with_verb_hints
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import DDPMScheduler
 from mld_core.training import distributed
@@ -67,6 +69,11 @@ class DenoiserTrainConfig:
     reworded_captions: int = 0  # extra versions of each caption in other words (subjects, synonyms) to train on
     reworded_turns: bool = False  # rewordings also say "turns" to a side with other verbs (captions.TURN_VERBS)
     reworded_sides: bool = False  # rewordings also name a side from the body: "to his / her left" (captions.reworded)
+    # text only: also read the checked verb each caption names (mld_core.condition.verb_hint), dropped to "none
+    # named" for verb_hint_dropout of the rows so the sentence alone still carries the verb
+    verb_hints: bool = False
+    verb_hint_dropout: float = 0.2
+    verb_hint_lr_scale: float = 30.0  # the hint vectors' learning rate over lr's (they start at zero, the rest trained)
     train_modules: list | None = None  # the denoiser's top-level modules to train (e.g. the text-reading ones); None: all
     device: str = "cpu"  # cpu, cuda, mps or auto (where this sitting trains; any sitting may resume on another)
     fp32: bool = False  # on CUDA, no mixed precision (default there: bf16 autocast, or fp16 with a gradient scaler)
@@ -78,6 +85,11 @@ class DenoiserTrainConfig:
         self.reworded_turns = inputs.true_or_false(self.reworded_turns, "reworded_turns")
         self.reworded_sides = inputs.true_or_false(self.reworded_sides, "reworded_sides")
         self.renormalise_latents = inputs.true_or_false(self.renormalise_latents, "renormalise_latents")
+        self.verb_hints = inputs.true_or_false(self.verb_hints, "verb_hints")
+        if self.verb_hints and self.cond != "text":
+            raise ValueError("verb_hints go with --cond text only")
+        self.verb_hint_dropout = inputs.number_in_range(self.verb_hint_dropout, "verb_hint_dropout", 0.0, 1.0)
+        self.verb_hint_lr_scale = inputs.number_in_range(self.verb_hint_lr_scale, "verb_hint_lr_scale", 0.0, 1000.0)
         self.train_modules = checked_module_names(self.train_modules)
         if isinstance(self.denoiser, dict):
             self.denoiser = DenoiserConfig(**self.denoiser)
@@ -227,12 +239,12 @@ class _DenoiserLoss(torch.nn.Module):
         super().__init__()
         self.denoiser = denoiser
 
-    def forward(self, z_t, t, lengths, noise, drop, text=None, actions=None):
+    def forward(self, z_t, t, lengths, noise, drop, text=None, actions=None, verbs=None):
         den, B = self.denoiser, len(z_t)
         if den.config.cond == "none":
             cond = den.null_tokens(B)
         else:
-            cond = den.condition_tokens(B, text=text, actions=actions, drop=drop)
+            cond = den.condition_tokens(B, text=text, actions=actions, verbs=verbs, drop=drop)
         return torch.nn.functional.mse_loss(den(z_t, t, cond, lengths).float(), noise)
 
 
@@ -241,12 +253,24 @@ def initial_denoiser(init: Path, init_cfg: DenoiserConfig, dcfg: DenoiserConfig,
     """The --init model's denoiser (``init_cfg``) for ``dcfg``: where the VAE's latent has more tokens than it
     denoises (a grown latent, ``train vae`` with grow_latent_tokens), its latent positions grown the same way; with
     ``new_condition`` (another condition kind, or other action labels), only its shared weights carried over
-    (``with_condition``)."""
+    (``with_condition``); with other verb hints, every weight carried over (``with_verb_hints``)."""
     old = LatentDenoiser(init_cfg)
     load_weights(init / "denoiser.safetensors", old)
     if dcfg.latent_tokens != init_cfg.latent_tokens:
         old = grow_latent(old, dcfg.latent_tokens, noise=GROWTH_NOISE, seed=seed)
-    return with_condition(old, dcfg, seed=seed) if new_condition else old
+    if new_condition:
+        return with_condition(old, dcfg, seed=seed)
+    return with_verb_hints(old, dcfg.verb_hints) if dcfg.verb_hints != init_cfg.verb_hints else old
+
+
+def parameter_groups(denoiser: LatentDenoiser, trained: list, hint_lr_scale: float) -> list[dict]:
+    """The optimiser's groups: the hint vectors of a denoiser with verb hints in a group of their own, at
+    ``hint_lr_scale`` times the rate (``common.set_lr``); one group otherwise."""
+    hints = getattr(denoiser, "verb_embedding", None)
+    if hints is None or not any(p is hints.weight for p in trained):
+        return [{"params": trained}]
+    return [{"params": [p for p in trained if p is not hints.weight]},
+            {"params": [hints.weight], "lr_scale": hint_lr_scale}]
 
 
 def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
@@ -282,6 +306,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
                          f"the VAE's have {dcfg.latent_tokens}")
     if cfg.cond == "action":
         dcfg.num_actions = len(actions)
+    dcfg.verb_hints = list(VERBS) if cfg.verb_hints else []
     trainable_parameters(LatentDenoiser(dcfg), cfg.train_modules, "denoiser")  # names checked before the slow steps
     if resume:
         check_resumed_modules(out, cfg.train_modules)
@@ -321,6 +346,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
         text = cached_caption_embeddings(out / TEXT_CACHE, captions, lambda: None)  # as rank 0 wrote it
         del encoder
         text = {k: v.to(rt.device) for k, v in text.items() if k != "captions_sha256"}
+    caption_verbs = verb_hint.verb_ids(captions, dcfg.verb_hints).to(rt.device)  # (captions,), 0: none named
     label_ids = torch.tensor([actions.index(units[u].label) if units[u].label in actions else 0
                               for u in unit_of.tolist()])
 
@@ -334,7 +360,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     trained = trainable_parameters(denoiser, cfg.train_modules, "denoiser")
     denoiser.to(rt.device)
     ema.to(rt.device)
-    opt = torch.optim.AdamW(trained, lr=cfg.lr, weight_decay=0.01)
+    opt = torch.optim.AdamW(parameter_groups(denoiser, trained, cfg.verb_hint_lr_scale), lr=cfg.lr, weight_decay=0.01)
     step, extra = load_train_state(out, denoiser, opt) if resume else (0, {})
     if resume and (out / "denoiser.safetensors").is_file():
         load_weights(out / "denoiser.safetensors", ema)
@@ -381,6 +407,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
         t = torch.randint(0, n_train, (B,), generator=gen)
         noise = torch.randn(B, n, d, generator=gen)  # (B, n, d)
         drop = torch.rand(B, generator=gen) < dcfg.cond_dropout
+        unhinted = torch.rand(B, generator=gen) < cfg.verb_hint_dropout if dcfg.verb_hints else None
         mine = rt.rows(B)
         rows = torch.from_numpy(idx[mine]).to(rt.device)
         t, noise, drop = (rt.to_device(v[mine]) for v in (t, noise, drop))
@@ -390,6 +417,8 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
             cap = torch.tensor([int(rng.choice(unit_captions[unit_list[i]])) for i in idx])[mine].to(rt.device)
             kwargs["text"] = TextEmbedding(pooled=text["pooled"][cap], tokens=text["tokens"][cap].float(),
                                            mask=text["mask"][cap])
+            if dcfg.verb_hints:
+                kwargs["verbs"] = caption_verbs[cap].masked_fill(rt.to_device(unhinted[mine]), verb_hint.NO_VERB)
         elif cfg.cond == "action":
             kwargs["actions"] = label_ids[rows]
         with rt.autocast():

@@ -150,6 +150,8 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
     base = load_config(teacher_dir)
     if base.denoiser is None or base.denoiser.cond != "text":
         raise ValueError(f"--teacher {teacher_dir} has no text-conditioned denoiser to distil")
+    if base.denoiser.verb_hints:
+        raise ValueError(f"--teacher {teacher_dir} reads verb hints: a Draft is not distilled from such a model yet")
     timesteps = draft_timesteps(cfg, LCMScheduler(base.scheduler, cfg.original_steps))  # checked before any work
     start = _starting_draft(cfg.init, base) if cfg.init and not resume else None
     rt = distributed.runtime(cfg.device, cfg.bf16, cfg.fp32, (cfg.batch_size, "batch_size"))  # before any writing
