@@ -7,8 +7,9 @@ Conditions (``cond``): "text" - the frozen sentence encoder's pooled vector as o
 tokens attention-pooled from its per-token features (the pooled vector alone barely tells "left" from "right");
 "action" - a learned embedding per class; "none" - unconditional. A text denoiser with ``verb_hints`` also reads the
 checked verb the prompt names (``mld_core.condition.verb_hint``): a learned vector per verb added to its first
-condition token, zero for a prompt naming none (the sentence alone then, as without hints). Every kind has a learned null condition used for
-classifier-free guidance (condition dropout in training, the unconditional branch at sampling).
+condition token, zero for a prompt naming none (the sentence alone then, as without hints). Every kind has a learned
+null condition used for classifier-free guidance (condition dropout in training, the unconditional branch at
+sampling).
 """
 
 from __future__ import annotations
@@ -139,7 +140,7 @@ class LatentDenoiser(nn.Module):
             if config.text_pool_tokens:
                 self.token_proj = nn.Linear(config.text_dim, d)
                 self.token_pool = AttentionPool(d, config.transformer.heads, config.text_pool_tokens)
-            if config.verb_hints:  # row 0 (no verb named) stays zero; the others start at zero: a warm start is unchanged
+            if config.verb_hints:  # row 0 (no verb named) stays zero, the others start at zero: a warm start holds
                 self.verb_embedding = nn.Embedding(1 + len(config.verb_hints), d, padding_idx=0)
                 nn.init.zeros_(self.verb_embedding.weight)
         elif config.cond == "action":
