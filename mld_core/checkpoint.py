@@ -44,6 +44,7 @@ class CheckpointError(Exception):
 
 
 DRAFT_TEXT_WEIGHTS = "draft_text.safetensors"  # the Draft's distilled text encoder layers (draft.text_layers)
+VERB_WEIGHTS = "verb_denoiser.safetensors"  # the verb denoiser (verb_guide)
 
 
 @dataclass
@@ -74,6 +75,25 @@ class DraftConfig:
 
 
 @dataclass
+class VerbGuideConfig:
+    """A verb denoiser (``verb_denoiser.safetensors``): an action-conditioned denoiser on the model's own latents
+    whose label guides, at ``scale``, the Final takes of prompts that name it by a checked verb
+    (mld_core.condition.verb_guide)."""
+
+    denoiser: DenoiserConfig = field(default_factory=lambda: DenoiserConfig(cond="action"))
+    actions: list = field(default_factory=list)  # its labels, in the order of its class embedding
+    scale: float = 8.0
+
+    def __post_init__(self):
+        if isinstance(self.denoiser, dict):
+            self.denoiser = DenoiserConfig(**self.denoiser)
+        if self.denoiser.cond != "action" or len(self.actions) != self.denoiser.num_actions:
+            raise ValueError(f"verb_guide: an action denoiser with one label per class, got cond "
+                             f"{self.denoiser.cond!r} with {self.denoiser.num_actions} classes and "
+                             f"{len(self.actions)} labels")
+
+
+@dataclass
 class ModelConfig:
     """Everything needed to rebuild a model from its folder (saved as config.json)."""
 
@@ -101,6 +121,7 @@ class ModelConfig:
     # a bare command ("jump") encoded as the captions word it ("a person jumps"; mld_core.condition.wording)
     commands_as_sentences: bool = True
     draft: DraftConfig | None = None  # a Draft denoiser in draft.safetensors (pipe(..., draft=True))
+    verb_guide: VerbGuideConfig | None = None  # a verb denoiser in verb_denoiser.safetensors (Final's text takes)
     provenance: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -124,6 +145,8 @@ class ModelConfig:
             self.scheduler = SchedulerConfig(**self.scheduler)
         if isinstance(self.draft, dict):
             self.draft = DraftConfig(**self.draft)
+        if isinstance(self.verb_guide, dict):
+            self.verb_guide = VerbGuideConfig(**self.verb_guide)
 
     def to_dict(self) -> dict:
         return {"format": FORMAT, "format_version": FORMAT_VERSION, **asdict(self)}
@@ -190,7 +213,7 @@ def load_config(model_dir: Path) -> ModelConfig:
             raise ValueError(f"expected a JSON object, got a {type(data).__name__}")
         if data.get("format") != FORMAT:
             raise ValueError(f"format is {data.get('format')!r}, expected {FORMAT!r}")
-        for name in ("vae", "denoiser", "scheduler", "text_encoder", "draft"):
+        for name in ("vae", "denoiser", "scheduler", "text_encoder", "draft", "verb_guide"):
             if data.get(name) is not None and not isinstance(data[name], dict):
                 raise ValueError(f"{name} must be an object, got {data[name]!r}")
         config = ModelConfig.from_dict(data)
@@ -230,6 +253,10 @@ def check_config(config: ModelConfig) -> None:
         raise ValueError(f"commands_as_sentences must be true or false, got {config.commands_as_sentences!r}")
     if config.draft is not None:
         _check_draft(config.draft, config.scheduler)
+    if config.verb_guide is not None:
+        scale = config.verb_guide.scale
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 <= scale < 100:
+            raise ValueError(f"verb_guide.scale must be a number in [0, 100), got {scale!r}")
 
 
 def _check_draft(draft: DraftConfig, scheduler: SchedulerConfig) -> None:

@@ -25,20 +25,21 @@ import numpy as np
 import torch
 
 from mld_core import inputs
-from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, CheckpointError, ModelConfig, load_config,
-                                 load_weights)
+from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, VERB_WEIGHTS, CheckpointError, ModelConfig,
+                                 load_config, load_weights)
 from mld_core.condition import content_anchor
 from mld_core.condition import text as text_condition
 from mld_core.condition import verb_hint
+from mld_core.condition.verb_guide import VerbGuide
 from mld_core.condition.coverage import INDEX_NAME, load_for_model, unavailable
 from mld_core.decode import LatentDecoder
 from mld_core.eval.quality import REAL_JERK_P95, seam_jerk
 from mld_core.inputs import InputError
 from mld_core.models.denoiser import LatentDenoiser
-from mld_core.models.transformer import native_bf16, packing_available
+from mld_core.models.transformer import native_bf16, packing_available, packs_in
 from mld_core.models.vae import MotionVAE
 from mld_core.motion.features import features_to_joints
-from mld_core.sampling import Conditions, DraftSampler, FinalSampler, initial_latents
+from mld_core.sampling import Conditions, DraftSampler, FinalSampler, VerbGuidance, initial_latents
 from mld_core.schedulers import DDIMScheduler, LCMScheduler
 from mld_core.take_fixes.constraints import Constraints, brief
 from mld_core.take_fixes.order import Takes, fixes_for
@@ -54,9 +55,11 @@ def draft_precision_for(choice: str, device: str | torch.device = "cpu") -> str:
     AMX: text encoder, denoiser and decoder each about 1.3-1.5x faster) and fp32 elsewhere."""
     if choice not in DRAFT_PRECISIONS:
         raise ValueError(f"draft_precision must be one of {', '.join(DRAFT_PRECISIONS)}, got {choice!r}")
-    packs = torch.device(device).type == "cpu" and packing_available()  # bf16 products need oneDNN's packed ops
+    # bf16 products need oneDNN's packed ops, which pack bfloat16 only with AVX512-BW/VL/DQ or AVX-NE-CONVERT
+    packs = torch.device(device).type == "cpu" and packing_available() and packs_in(torch.bfloat16)
     if choice == "bf16" and not packs:
-        warnings.warn("draft_precision bf16 needs a CPU with oneDNN: the Draft runs in fp32", stacklevel=3)
+        warnings.warn("draft_precision bf16 needs a CPU whose oneDNN packs bfloat16: the Draft runs in fp32",
+                      stacklevel=3)
     if choice != "auto":
         return choice if packs else "fp32"
     return "bf16" if packs and native_bf16() else "fp32"
@@ -198,6 +201,7 @@ class MLDPipeline:
         self._draft_text_cache = text_condition.TextCache()  # the same for the Draft's text encoder
         self.coverage_index = None  # mld_core.condition.coverage.CoverageIndex, from coverage_index.npz
         self.content_anchor = None  # mld_core.condition.content_anchor.ContentAnchor, from content_anchor.safetensors
+        self.verb_guide = None  # mld_core.condition.verb_guide.VerbGuide: a verb denoiser guiding Final's text takes
         self._quality = None  # mld_core.eval.quality.QualityScorer, loaded on first use
         mean, std = config.mean_std
         self.mean, self.std = mean, std
@@ -240,6 +244,8 @@ class MLDPipeline:
             raise CheckpointError(f"{model_dir / 'config.json'}: mean/std must have {config.vae.feature_dim} values")
         pipe = cls(config, vae, denoiser, text_encoder, device, precision, draft, draft_precision, draft_text)
         pipe.draft_problem = draft_problem
+        if config.verb_guide is not None and denoiser is not None and config.denoiser.cond == "text":
+            pipe.verb_guide = _verb_guide(model_dir, config, pipe.device, PRECISIONS[precision])
         try:
             pipe.coverage_index = load_for_model(model_dir)
             pipe.content_anchor = content_anchor.load_for_model(model_dir)
@@ -491,13 +497,25 @@ class MLDPipeline:
         if not call.draft:
             self.scheduler.set_timesteps(call.steps)
             scale = call.guidance if call.guidance != 1.0 and guided else None
-            return FinalSampler(self.denoiser, self.scheduler, conditions, call.lengths, scale)
+            return FinalSampler(self.denoiser, self.scheduler, conditions, call.lengths, scale,
+                                self._verb_guidance(call) if scale is not None else None)
         own = self.config.draft
         self.draft_scheduler.set_timesteps(call.steps, own.timesteps if call.steps == own.num_inference_steps else None)
         t_s = own.teacher_guidance if own.teacher_guidance is not None else call.guidance
         return DraftSampler(self.draft_denoiser, self.draft_scheduler, conditions, call.lengths,
                             call.guidance if guided else 1.0, generators, self.draft_teacher,
                             t_s if t_s != 1.0 and guided else None, call.teacher_steps)
+
+    def _verb_guidance(self, call: _Call) -> VerbGuidance | None:
+        """The verb denoiser's term on the rows whose prompt names one of its labels (None: no such row)."""
+        guide = self.verb_guide
+        if guide is None or not guide.scale or call.cond_kind != "text":
+            return None
+        rows, labels = guide.rows_and_labels(call.prompts, self.device)
+        if not len(rows):
+            return None
+        cond = guide.denoiser.condition_tokens(len(rows), actions=labels)
+        return VerbGuidance(guide.denoiser, rows, cond, guide.denoiser.null_tokens(len(rows)), guide.scale)
 
     def _redraw(self, call: _Call, kwargs: dict, rows: list, draw: int) -> MLDOutput:
         """Rows ``rows`` of ``call`` made again from draw ``draw`` of their seeds, as they were first made but without
@@ -632,6 +650,16 @@ def _vae_copy(vae: MotionVAE, config, device: torch.device, dtype: torch.dtype) 
     copy = copy.eval().to(device)
     copy.decoder.pack_for_cpu_inference(dtype)
     return copy
+
+
+def _verb_guide(model_dir: Path, config: ModelConfig, device: torch.device, dtype: torch.dtype) -> VerbGuide:
+    """The folder's verb denoiser (config verb_guide), in the precision of the model's denoiser."""
+    g = config.verb_guide
+    denoiser = LatentDenoiser(g.denoiser)
+    load_weights(model_dir / VERB_WEIGHTS, denoiser)
+    denoiser = denoiser.eval().to(device, dtype)
+    denoiser.transformer.pack_for_cpu_inference()  # no-op off CPU
+    return VerbGuide(denoiser, list(g.actions), g.scale)
 
 
 def _draft_text_encoder(model_dir: Path, config: ModelConfig, precision: str):

@@ -1,7 +1,9 @@
 """Latent sampling: z_T ~ N(0, I) per row, then denoising one timestep at a time to z_0.
 
 - Final (:class:`FinalSampler`): DDIM steps of the denoiser with classifier-free guidance,
-  eps = eps(z_t, t, null) + s * (eps(z_t, t, c) - eps(z_t, t, null)).
+  eps = eps(z_t, t, null) + s * (eps(z_t, t, c) - eps(z_t, t, null)); on the rows whose prompt names one of a verb
+  denoiser's labels a (:class:`VerbGuidance`), plus s_a * (eps_a(z_t, t, a) - eps_a(z_t, t, null)), the two
+  conditions composed as in Liu et al., "Compositional Visual Generation with Composable Diffusion Models" (2022).
 - Draft (:class:`DraftSampler`): consistency steps of the distilled denoiser, which takes s as an input (one pass per
   step), re-noised between steps; its last ``teacher_steps`` are guided DDIM steps of the denoiser it was distilled
   from (its teacher), which finish the sample.
@@ -49,23 +51,52 @@ def guided_eps(denoiser: LatentDenoiser, z: torch.Tensor, t, cond: torch.Tensor,
     if scale is None:
         t_batch = torch.full((len(z),), int(t), device=z.device)
         return denoiser(z.to(dtype), t_batch, cond.to(dtype), lengths).float()
+    eps_null, eps_cond = null_and_cond_eps(denoiser, z, t, cond, null, lengths)
+    return eps_null + scale * (eps_cond - eps_null)
+
+
+def null_and_cond_eps(denoiser: LatentDenoiser, z: torch.Tensor, t, cond: torch.Tensor, null: torch.Tensor,
+                      lengths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(eps(z_t, t, null), eps(z_t, t, c)), each (B, n, d) in float32, from one pass over the 2B rows [null; cond]."""
+    dtype = denoiser.latent_in.weight.dtype
     t_batch = torch.full((2 * len(z),), int(t), device=z.device)
     eps = denoiser(torch.cat([z, z]).to(dtype), t_batch, torch.cat([null, cond]).to(dtype),
                    torch.cat([lengths, lengths])).float()
     eps_null, eps_cond = eps.chunk(2)  # each (B, n, d)
-    return eps_null + scale * (eps_cond - eps_null)
+    return eps_null, eps_cond
+
+
+@dataclass
+class VerbGuidance:
+    """The term a second, action-conditioned denoiser on the same latents adds to the rows ``rows`` (B',) of a batch:
+    ``scale`` * (eps_a(z_t, t, a) - eps_a(z_t, t, null)), its condition and null tokens (B', C, d) those rows'."""
+
+    denoiser: LatentDenoiser
+    rows: torch.Tensor  # (B',) long, indices into the batch
+    cond: torch.Tensor
+    null: torch.Tensor
+    scale: float
+
+    def add_to(self, eps: torch.Tensor, z: torch.Tensor, t, lengths: torch.Tensor) -> torch.Tensor:
+        """eps (B, n, d) with the term added on its rows."""
+        r = self.rows
+        eps_null, eps_cond = null_and_cond_eps(self.denoiser, z[r], t, self.cond, self.null, lengths[r])
+        eps = eps.clone()
+        eps[r] += self.scale * (eps_cond - eps_null)  # (B', n, d)
+        return eps
 
 
 @dataclass
 class FinalSampler:
     """DDIM steps of ``denoiser`` on ``scheduler``'s timesteps (set by the caller), guided with ``scale`` (None: the
-    condition alone)."""
+    condition alone), and on some rows by a verb denoiser too (``verb``)."""
 
     denoiser: LatentDenoiser
     scheduler: object  # mld_core.schedulers.DDIMScheduler
     conditions: Conditions
     lengths: torch.Tensor  # (B,) frames
     scale: float | None
+    verb: VerbGuidance | None = None
 
     @property
     def timesteps(self):
@@ -75,6 +106,8 @@ class FinalSampler:
         """z_t (B, n, d) -> the next timestep's."""
         c = self.conditions
         eps = guided_eps(self.denoiser, z, t, c.cond, c.null, self.lengths, self.scale)
+        if self.verb is not None:
+            eps = self.verb.add_to(eps, z, t, self.lengths)
         z, _ = self.scheduler.step(eps, t, z)
         return z
 

@@ -1,6 +1,6 @@
 """Benchmark the add-on in bpy: model load, Generate -> keys on the canonical rig (Final and Draft), key writing.
 
-    python scripts/bench_addon.py [--model DIR] [--seconds 4] [--steps 50] [--repeat 5] [--threads N]
+    python scripts/bench_addon.py [--model DIR] [--prompt TEXT] [--seconds 4] [--steps 50] [--repeat 5] [--threads N]
 
 Prints numbers (targets: load <= 2 s, Generate -> keys <= 0.5 s for one 4 s prompt with the model loaded,
 key writing <= 10 ms). Without --model it uses the bundled default model, or a tiny random model when none
@@ -42,6 +42,7 @@ def median_time(fn, repeat: int, label: str = "") -> tuple[float, float]:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", help="model folder (default: bundled, else a tiny random one)")
+    parser.add_argument("--prompt", default="a person walks forward and waves with the right hand")
     parser.add_argument("--seconds", type=float, default=4.0)
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--repeat", type=int, default=5)
@@ -85,7 +86,7 @@ def main(argv=None) -> int:
         obj = canonical_armature.create_canonical_armature(bpy.context, body=False)
         scene.mld_motion.target = obj
         s = scene.mld_motion
-        s.prompt, s.seconds, s.steps, s.seed = "a person walks forward and waves with the right hand", args.seconds, args.steps, 0
+        s.prompt, s.seconds, s.steps, s.seed = args.prompt, args.seconds, args.steps, 0
 
         c0, t0 = time.process_time(), time.perf_counter()
         pipe = runtime.cache().get(model_dir, "cpu", args.threads)

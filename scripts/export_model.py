@@ -36,8 +36,8 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, CheckpointError, load_config,  # noqa: E402
-                                 load_weights, save_model)
+from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, VERB_WEIGHTS, CheckpointError,  # noqa: E402
+                                 load_config, load_weights, save_model)
 from mld_core.fileio import make_parents  # noqa: E402
 from mld_core.inputs import InputError, check_output_folder, parse_json  # noqa: E402
 from mld_core.models.denoiser import LatentDenoiser  # noqa: E402
@@ -283,6 +283,9 @@ def main(argv=None) -> int:
     if config.draft is not None and not (args.run / DRAFT_WEIGHTS).is_file():
         print(f"error: {args.run} names a Draft in config.json but has no {DRAFT_WEIGHTS}", file=sys.stderr)
         return 2
+    if config.verb_guide is not None and not (args.run / VERB_WEIGHTS).is_file():
+        print(f"error: {args.run} names a verb denoiser in config.json but has no {VERB_WEIGHTS}", file=sys.stderr)
+        return 2
     if args.model_id:
         config.model_id = args.model_id
     if vae_only:
@@ -310,6 +313,8 @@ def write_folder(out: Path, config, vae, den, card: str, run: Path, data: Path |
         save_model(tmp, config, vae, den, dtype=torch.float16, card=card)
         if den is not None:
             write_coverage_index(run, tmp, config, data)
+        if den is not None and config.verb_guide is not None:  # a verb denoiser samples the same latents too
+            shutil.copyfile(run / VERB_WEIGHTS, tmp / VERB_WEIGHTS)
         if den is not None and config.draft is not None:  # the Draft samples the same latents: it serves a
             if (run / DRAFT_TEXT_WEIGHTS).is_file():        # swapped-in decoder too
                 shutil.copyfile(run / DRAFT_TEXT_WEIGHTS, tmp / DRAFT_TEXT_WEIGHTS)

@@ -8,7 +8,7 @@ import torch
 
 from mld_core.checkpoint import CheckpointError
 from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser
-from mld_core.models.transformer import TransformerConfig
+from mld_core.models.transformer import TransformerConfig, packs_in
 from mld_core.inputs import InputError
 from mld_core.schedulers import DDIMScheduler, LCMScheduler
 from mld_core.testing import tiny_pipeline
@@ -513,6 +513,8 @@ def test_bf16_products_in_a_float32_stack_stay_close_to_float32():
 
 
 # -- the Draft's precision ----------------------------------------------------------------------------------------
+@pytest.mark.skipif(not packs_in(torch.bfloat16), reason="this CPU's oneDNN packs no bfloat16 (it needs AVX512-BW/VL/DQ "
+                    "or AVX-NE-CONVERT), so a Draft asked for bf16 runs in fp32")
 def test_a_bf16_draft_leaves_final_unchanged_and_keeps_its_rows_close_to_single_runs(tmp_path):
     from mld_core.models.text_encoder import TextEmbedding
 
@@ -537,6 +539,8 @@ def test_a_bf16_draft_leaves_final_unchanged_and_keeps_its_rows_close_to_single_
     assert not bf16._draft_text_cache and not bf16._text_cache
 
 
+@pytest.mark.skipif(not packs_in(torch.bfloat16), reason="this CPU's oneDNN packs no bfloat16 (it needs AVX512-BW/VL/DQ "
+                    "or AVX-NE-CONVERT), so a Draft asked for bf16 runs in fp32")
 def test_a_drafts_teacher_is_the_float32_denoiser_whatever_finals_precision(tmp_path):
     from mld_core.pipeline import MLDPipeline
 
@@ -557,6 +561,7 @@ def test_a_drafts_teacher_is_the_float32_denoiser_whatever_finals_precision(tmp_
 def test_auto_draft_precision_is_bf16_only_on_cpus_that_compute_it_natively(monkeypatch):
     import mld_core.pipeline as pipeline
 
+    monkeypatch.setattr(pipeline, "packs_in", lambda dtype: True)  # a CPU whose oneDNN packs bfloat16
     monkeypatch.setattr(pipeline, "native_bf16", lambda: True)
     assert pipeline.draft_precision_for("auto") == "bf16" and pipeline.draft_precision_for("fp32") == "fp32"
     monkeypatch.setattr(pipeline, "native_bf16", lambda: False)
@@ -566,8 +571,14 @@ def test_auto_draft_precision_is_bf16_only_on_cpus_that_compute_it_natively(monk
     monkeypatch.setattr(pipeline, "packing_available", lambda: False)  # no oneDNN: no bf16 products
     with pytest.warns(UserWarning, match="runs in fp32"):
         assert pipeline.draft_precision_for("bf16") == "fp32"
+    monkeypatch.setattr(pipeline, "packing_available", lambda: True)
+    monkeypatch.setattr(pipeline, "packs_in", lambda dtype: False)  # oneDNN, but no bfloat16 packing (AVX2 only)
+    with pytest.warns(UserWarning, match="runs in fp32"):
+        assert pipeline.draft_precision_for("bf16") == "fp32"
 
 
+@pytest.mark.skipif(not packs_in(torch.bfloat16), reason="this CPU's oneDNN packs no bfloat16 (it needs AVX512-BW/VL/DQ "
+                    "or AVX-NE-CONVERT), so a Draft asked for bf16 runs in fp32")
 def test_an_encoder_passed_in_is_the_drafts_too(tmp_path):
     from mld_core.models.text_encoder import MiniLMEncoder
     from mld_core.pipeline import MLDPipeline

@@ -417,3 +417,22 @@ def test_bf16_pipeline_is_close_to_float32(tmp_path):
     assert not np.array_equal(a.features, b.features)
     with pytest.raises(ValueError, match="precision"):
         MLDPipeline.from_pretrained(tmp_path / "a", precision="fp8")
+
+
+def test_a_dtype_onednn_cannot_pack_here_runs_unpacked_instead_of_failing(monkeypatch):
+    """On a CPU whose oneDNN packs no bfloat16 (AVX2 only), packing a bf16 stack is declined and its layers run as
+    they are, giving the same output as a stack that was never packed."""
+    import mld_core.models.transformer as transformer
+
+    torch.manual_seed(0)
+    net = SkipTransformer(TransformerConfig(dim=16, heads=2, ff_dim=32, layers=3, dropout=0.0)).eval()
+    x = torch.randn(2, 5, 16)
+    with torch.no_grad():
+        reference = net(x)
+    real_packs_in = transformer.packs_in
+    monkeypatch.setattr(transformer, "packs_in", lambda dtype: False)
+    assert net.pack_for_cpu_inference(torch.bfloat16) is False and not net._packed
+    with torch.no_grad():
+        assert torch.equal(net(x), reference)
+    if transformer.packing_available():
+        assert real_packs_in(torch.float32)  # float32 packs wherever oneDNN does

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +15,8 @@ from mld_core.cli import main
 from mld_core.motion.features import joints_to_features, mean_std
 from mld_core.pipeline import MLDPipeline
 from mld_core.training.common import Budget, lr_factor
+
+REPO = Path(__file__).resolve().parents[1]
 
 TINY_VAE = {"vae": {"latent_dim": 32, "max_frames": 64,
                     "encoder": {"dim": 32, "heads": 2, "ff_dim": 64, "layers": 1, "dropout": 0.0},
@@ -1108,3 +1113,46 @@ def test_train_denoiser_with_verb_hints_from_a_text_run(tmp_path):
     assert main(["train", "denoiser", "--data", str(data), "--vae", str(vae), "--out", str(tmp_path / "act"),
                  "--cond", "action", "--steps", "1", "--threads", "1",
                  "--config", json.dumps({"verb_hints": True})]) == 2
+
+
+def test_an_action_run_on_a_text_runs_latents_guides_it_and_the_guide_stays_with_that_text_run(tmp_path):
+    """train denoiser --cond action --vae TEXT --init TEXT, then scripts/attach_verb_guide.py: the folder generates
+    from the CLI, exports with its verb denoiser, and a denoiser trained on its VAE does not inherit the guide."""
+    import importlib.util
+
+    from mld_core.checkpoint import load_config
+    from mld_core.pipeline import MLDPipeline
+
+    spec = importlib.util.spec_from_file_location("attach_verb_guide", REPO / "scripts" / "attach_verb_guide.py")
+    attach = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(attach)
+    data = _write_folder(tmp_path / "data", lambda k: f"a person {('jumps', 'kicks', 'walks')[k % 3]} {k}#a/DET#0.0#0.0\n")
+    labels = json.loads((data / "actions.json").read_text())
+    labels["classes"] = ["jump", "kick", "other"]
+    labels["clips"] = {c: labels["classes"][int(c[4:]) % 3] for c in labels["clips"]}
+    (data / "actions.json").write_text(json.dumps(labels))
+    vae, text, action, guided = (tmp_path / n for n in ("vae", "text", "action", "guided"))
+    over = {k: v for k, v in TINY_DEN.items() if k != "denoiser"}
+    assert main(["train", "vae", "--data", str(data), "--out", str(vae), "--steps", "2", "--threads", "1",
+                 "--config", json.dumps(TINY_VAE)]) == 0
+    assert main(["train", "denoiser", "--data", str(data), "--vae", str(vae), "--out", str(text), "--steps", "2",
+                 "--threads", "1", "--config", json.dumps(TINY_DEN)]) == 0
+    assert main(["train", "denoiser", "--data", str(data), "--vae", str(text), "--out", str(action), "--cond",
+                 "action", "--init", str(text), "--steps", "2", "--threads", "1", "--config", json.dumps(over)]) == 0
+    assert attach.main([str(text), str(action), "--out", str(guided), "--scale", "8"]) == 0
+    assert load_config(guided).verb_guide.scale == 8.0
+    out = tmp_path / "take.npz"
+    assert main(["generate", "a person jumps", "--model", str(guided), "--seconds", "1.5", "--steps", "2",
+                 "--out", str(out)]) == 0
+    assert np.isfinite(np.load(out)["joints"]).all()
+    exported = tmp_path / "exported"
+    assert subprocess.run([sys.executable, str(REPO / "scripts" / "export_model.py"), str(guided), "--out",
+                           str(exported)], capture_output=True, text=True, timeout=300).returncode == 0
+    assert (exported / "verb_denoiser.safetensors").is_file()
+    assert MLDPipeline.from_pretrained(exported).verb_guide.verbs == ["jump", "kick"]
+    again = tmp_path / "again"
+    assert main(["train", "denoiser", "--data", str(data), "--vae", str(guided), "--out", str(again), "--steps", "1",
+                 "--threads", "1", "--config", json.dumps(TINY_DEN)]) == 0
+    config = load_config(again)
+    assert config.verb_guide is None and "verb_guide" not in config.provenance
+    assert MLDPipeline.from_pretrained(again).verb_guide is None

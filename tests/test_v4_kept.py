@@ -77,12 +77,13 @@ def test_the_merged_evaluator_is_fp16_and_gives_its_pinned_similarity():
 
 
 def test_the_kept_text_model_is_fp16_generates_and_records_no_machine_path():
-    """research/v4/text_model: a model folder (denoiser + the VAE it trained on) that generates as it is, in fp16,
-    its card and provenance free of any machine's paths."""
+    """research/v4/text_model: a model folder (denoiser + the VAE it trained on + a verb denoiser on its latents) that
+    generates as it is, in fp16, its card and provenance free of any machine's paths; the verb denoiser guides a
+    prompt naming a checked verb and leaves any other as the text denoiser alone makes it."""
     from mld_core.pipeline import MLDPipeline
 
     folder = V4 / "text_model"
-    for name in ("denoiser.safetensors", "vae.safetensors"):
+    for name in ("denoiser.safetensors", "vae.safetensors", "verb_denoiser.safetensors"):
         assert {v.dtype for v in load_file(str(folder / name)).values()} == {torch.float16}
     card, config = (folder / "MODEL_CARD.md").read_text(), (folder / "config.json").read_text()
     assert "CC BY-NC 4.0" in card and "mocap.cs.cmu.edu" in card
@@ -92,6 +93,14 @@ def test_the_kept_text_model_is_fp16_generates_and_records_no_machine_path():
     out = pipe(["a person squats down"], seconds=2.0, seed=0, num_variants=2)
     assert out.joints.shape[0] == 2 and np.isfinite(out.joints).all()
     assert not np.allclose(out.joints[0], out.joints[1])  # two seeds, two takes
+    assert pipe.verb_guide.scale == 8.0 and "## Verb guidance" in card
+    assert set(pipe.verb_guide.verbs) == {"jump", "get_low", "on_ground", "crawl", "reach_floor", "inverted",
+                                          "stand_up", "climb", "kick", "throw"}
+    kw = dict(seconds=2.0, seed=0, num_inference_steps=5, repair=False, side_redraws=0)
+    guided = pipe(["a person jumps", "a person waves"], **kw).joints
+    pipe.verb_guide.scale = 0.0
+    plain = pipe(["a person jumps", "a person waves"], **kw).joints
+    assert not np.allclose(guided[0], plain[0], atol=1e-3) and np.array_equal(guided[1], plain[1])
 
 
 def test_the_kept_action_model_is_fp16_generates_by_label_and_refuses_an_unknown_one():

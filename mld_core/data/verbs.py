@@ -30,3 +30,12 @@ def verbs_in(text: str) -> list[str]:
     """The checked verbs ``text`` asks for, in the table's order."""
     lower = str(text).lower()
     return [verb for verb, pattern in _COMPILED.items() if pattern.search(lower)]
+
+
+def verbs_in_order(text: str) -> list[str]:
+    """The checked verbs ``text`` asks for, in the order it first names them ("stands up from sitting on the ground":
+    stand_up, get_low, on_ground)."""
+    lower = str(text).lower()
+    found = [(m.start(), i, verb) for i, (verb, pattern) in enumerate(_COMPILED.items())
+             if (m := pattern.search(lower))]
+    return [verb for _, _, verb in sorted(found)]

@@ -66,7 +66,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from mld_core.models.transformer import _linear, _pack, packing_available
+from mld_core.models.transformer import _linear, _pack, packing_available, packs_in
 
 from .tokenizer import WordPieceTokenizer, builtin_vocab
 
@@ -514,8 +514,9 @@ class MiniLMEncoder(TextEncoder):
     # -- running ---------------------------------------------------------------------------------------------------
     def pack_for_cpu_inference(self) -> bool:
         """Prepack the layers' weight matrices for oneDNN once (a prompt's few tokens then encode about 2x faster
-        on a CPU); False where oneDNN is unavailable or the weights are not on the CPU."""
-        if self.device.type != "cpu" or not packing_available():
+        on a CPU); False where oneDNN is unavailable, cannot pack the weights' dtype on this CPU, or the weights are
+        not on the CPU."""
+        if self.device.type != "cpu" or not packing_available() or not packs_in(self.word_embeddings.dtype):
             return False
         for layer in self.layers:
             layer.pack()

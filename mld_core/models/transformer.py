@@ -7,6 +7,8 @@ With ``skip=False`` the same layers run as a plain stack. Batch-first: (B, S, d)
 
 from __future__ import annotations
 
+import functools
+
 import math
 from dataclasses import asdict, dataclass
 
@@ -78,7 +80,7 @@ class SkipTransformer(nn.Module):
         products, and the attention between them, in that precision while layer norms and the residual stream keep
         the module's, much as autocast does. A snapshot: ``train()`` drops it. False where oneDNN is unavailable."""
         self._forget_derived()
-        if not _packing_available(self):
+        if not _packing_available(self, dtype):
             return False
         d = self.config.dim
         for layer in [*self.input_blocks, *self.middle_blocks, *self.output_blocks]:
@@ -169,9 +171,21 @@ def native_bf16() -> bool:
     return bool(caps.get("avx512_bf16") or caps.get("amx_bf16"))
 
 
-def _packing_available(module: nn.Module) -> bool:
+def _packing_available(module: nn.Module, dtype: torch.dtype | None = None) -> bool:
     p = next(module.parameters(), None)
-    return p is not None and p.device.type == "cpu" and packing_available()
+    return (p is not None and p.device.type == "cpu" and packing_available()
+            and packs_in(dtype if dtype is not None else p.dtype))
+
+
+@functools.cache
+def packs_in(dtype: torch.dtype) -> bool:
+    """Whether oneDNN prepacks weights of ``dtype`` on this CPU (bfloat16 needs AVX512-BW/VL/DQ or AVX-NE-CONVERT;
+    elsewhere the layers run unpacked)."""
+    try:
+        torch.ops.mkldnn._reorder_linear_weight(torch.zeros(16, 16, dtype=dtype), 16)
+    except RuntimeError:
+        return False
+    return True
 
 
 def _pack(weight: torch.Tensor, bias: torch.Tensor | None, dtype: torch.dtype | None = None) -> tuple:

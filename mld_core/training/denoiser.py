@@ -378,7 +378,9 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     config.actions = actions
     config.guidance_scale = cfg.guidance_scale
     config.content_anchor = ContentAnchorConfig()  # an anchor is built and gated per denoiser (build_content_anchor.py)
-    config.provenance = {**base.provenance, "denoiser_training": recorded_settings(cfg)}
+    config.verb_guide = None  # a verb denoiser samples the latents of the denoiser it was attached to, not this one's
+    config.provenance = {**{k: v for k, v in base.provenance.items() if k != "verb_guide"},
+                         "denoiser_training": recorded_settings(cfg)}
     if rt.is_main:
         shutil.copyfile(vae_dir / "vae.safetensors", out / "vae.safetensors")
         save_json(out / "train_config.json", {**asdict(cfg), "stage": "denoiser",
