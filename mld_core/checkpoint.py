@@ -254,9 +254,17 @@ def check_config(config: ModelConfig) -> None:
     if config.draft is not None:
         _check_draft(config.draft, config.scheduler)
     if config.verb_guide is not None:
-        scale = config.verb_guide.scale
-        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 <= scale < 100:
-            raise ValueError(f"verb_guide.scale must be a number in [0, 100), got {scale!r}")
+        _check_verb_guide(config.verb_guide, config.vae)
+
+
+def _check_verb_guide(guide: VerbGuideConfig, vae: VAEConfig) -> None:
+    scale = guide.scale
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 <= scale < 100:
+        raise ValueError(f"verb_guide.scale must be a number in [0, 100), got {scale!r}")
+    den = guide.denoiser
+    if (den.latent_tokens, den.latent_dim) != (vae.latent_tokens, vae.latent_dim):
+        raise ValueError(f"verb_guide: its denoiser's latent {den.latent_tokens} x {den.latent_dim} is not the "
+                         f"VAE's {vae.latent_tokens} x {vae.latent_dim}")
 
 
 def _check_draft(draft: DraftConfig, scheduler: SchedulerConfig) -> None:

@@ -30,8 +30,8 @@ from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, VERB_WEI
 from mld_core.condition import content_anchor
 from mld_core.condition import text as text_condition
 from mld_core.condition import verb_hint
-from mld_core.condition.verb_guide import VerbGuide
 from mld_core.condition.coverage import INDEX_NAME, load_for_model, unavailable
+from mld_core.condition.verb_guide import VerbGuide
 from mld_core.decode import LatentDecoder
 from mld_core.eval.quality import REAL_JERK_P95, seam_jerk
 from mld_core.inputs import InputError

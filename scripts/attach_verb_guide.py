@@ -30,11 +30,11 @@ from mld_core.models.denoiser import LatentDenoiser  # noqa: E402
 from mld_core.models.vae import MotionVAE  # noqa: E402
 
 VAE_TOLERANCE = 1e-3  # fp16 and fp32 copies of one VAE differ by rounding only
+CARD_HEADING = "## Verb guidance"
 
 
-def same_latents_problem(text_dir: Path, action_dir: Path) -> str:
-    """Why the two folders do not sample the same latents ("" when they do)."""
-    text, action = load_config(text_dir), load_config(action_dir)
+def same_latents_problem(text_dir: Path, text, action_dir: Path, action) -> str:
+    """Why the two folders (and their configs) do not sample the same latents ("" when they do)."""
     if text.denoiser is None or text.denoiser.cond != "text":
         return f"{text_dir} is not a text-conditioned model"
     if action.denoiser is None or action.denoiser.cond != "action":
@@ -55,18 +55,19 @@ def same_latents_problem(text_dir: Path, action_dir: Path) -> str:
     return ""
 
 
-def attach(text_dir: Path, action_dir: Path, out: Path, scale: float) -> None:
-    action = load_config(action_dir)
+def attach(config, action_dir: Path, action, out: Path, scale: float) -> None:
+    """Write the verb denoiser, the card's section (replacing an earlier one) and ``config`` with its verb_guide into
+    ``out``, a copy of the text model's folder."""
     denoiser = LatentDenoiser(action.denoiser)
     load_weights(action_dir / "denoiser.safetensors", denoiser)
-    config = load_config(text_dir)
     config.verb_guide = VerbGuideConfig(action.denoiser, list(action.actions), scale)
     config.provenance = {**config.provenance, "verb_guide": {"model_id": action.model_id,
                                                              "training": action.provenance.get("denoiser_training")}}
     save_weights(out / VERB_WEIGHTS, denoiser, torch.float16)
     card = out / "MODEL_CARD.md"
     if card.is_file():
-        card.write_text(card.read_text().rstrip("\n") + "\n\n" + card_section(action, scale))
+        text = card.read_text().split(f"\n{CARD_HEADING}\n")[0].rstrip("\n")
+        card.write_text(text + "\n\n" + card_section(action, scale))
     save_json(out / "config.json", config.to_dict())
 
 
@@ -75,12 +76,25 @@ def card_section(action, scale: float) -> str:
     verbs = [v for v in VERBS if v in action.actions]
     training = action.provenance.get("denoiser_training") or {}
     steps = action.provenance.get("denoiser_steps")
-    return (f"## Verb guidance\n"
+    return (f"{CARD_HEADING}\n"
             f"`verb_denoiser.safetensors` is {action.model_id}, an action-conditioned denoiser on this model's own "
             f"latents (fp16). A Final take whose prompt names one of its labels by a checked verb ({', '.join(verbs)}) "
             f"is guided by that label as well as by the sentence, at scale {scale:g} "
             f"(`verb_guide` in config.json; mld_core/condition/verb_guide.py). Its training: "
             f"{steps if steps is not None else 'unknown'} steps, `{json.dumps(training, sort_keys=True)}`.\n")
+
+
+def out_problem(out: Path, overwrite: bool, models: tuple) -> str:
+    """Why ``out`` cannot be written ("" when it can): an existing folder without ``overwrite``, not a folder, or
+    one of the two models or a folder inside one."""
+    if out.exists() and not out.is_dir():
+        return f"{out} exists and is not a folder"
+    if out.exists() and not overwrite:
+        return f"{out} exists (pass --overwrite to replace it)"
+    target = out.resolve()
+    if any(target == m.resolve() or target.is_relative_to(m.resolve()) for m in models):
+        return "--out must be a new folder, not one of the two models or inside one"
+    return ""
 
 
 def main(argv=None) -> int:
@@ -91,17 +105,13 @@ def main(argv=None) -> int:
     ap.add_argument("--scale", type=float, default=8.0, help="the verb denoiser's guidance scale (default 8)")
     ap.add_argument("--overwrite", action="store_true")
     args = ap.parse_args(argv)
-    if args.out.exists() and not args.overwrite:
-        print(f"error: {args.out} exists (pass --overwrite to replace it)", file=sys.stderr)
-        return 2
-    if args.out.resolve() in (args.text_model.resolve(), args.action_model.resolve()):
-        print("error: --out must be a new folder, not one of the two models", file=sys.stderr)
-        return 2
+    problem = out_problem(args.out, args.overwrite, (args.text_model, args.action_model))
     if not 0 <= args.scale < 100:
-        print(f"error: --scale must be in [0, 100), got {args.scale:g}", file=sys.stderr)
-        return 2
+        problem = f"--scale must be in [0, 100), got {args.scale:g}"
     try:
-        problem = same_latents_problem(args.text_model, args.action_model)
+        if not problem:
+            text, action = load_config(args.text_model), load_config(args.action_model)
+            problem = same_latents_problem(args.text_model, text, args.action_model, action)
         if problem:
             print(f"error: {problem}", file=sys.stderr)
             return 2
@@ -109,7 +119,7 @@ def main(argv=None) -> int:
         tmp = Path(tempfile.mkdtemp(prefix=".verb_guide_", dir=args.out.parent))
         try:
             shutil.copytree(args.text_model, tmp, dirs_exist_ok=True)
-            attach(args.text_model, args.action_model, tmp, args.scale)
+            attach(text, args.action_model, action, tmp, args.scale)
             if args.out.exists():
                 shutil.rmtree(args.out)
             tmp.rename(args.out)

@@ -134,12 +134,34 @@ def test_attaching_refuses_other_latents_a_wrong_kind_and_an_existing_folder(fol
     proc = _attach(text, action, guided)
     assert proc.returncode == 2 and "exists" in proc.stderr and (guided / "config.json").read_text() == before
     assert "Traceback" not in proc.stderr
+    a_file = tmp_path / "a_file"
+    a_file.write_text("mine")
+    proc = _attach(text, action, a_file, "--overwrite")
+    assert proc.returncode == 2 and "not a folder" in proc.stderr and a_file.read_text() == "mine"
+    for out in (text, text / "inside"):
+        proc = _attach(text, action, out, "--overwrite")
+        assert proc.returncode == 2 and "new folder" in proc.stderr
+    assert sorted(p.name for p in text.iterdir()) == sorted(p.name for p in guided.iterdir() if p.name !=
+                                                            "verb_denoiser.safetensors")
+    for scale in ("nan", "inf", "-1"):
+        proc = _attach(text, action, tmp_path / "s", "--scale", scale)
+        assert proc.returncode == 2 and "--scale" in proc.stderr and not (tmp_path / "s").exists()
+
+
+def test_attaching_again_replaces_the_guide_and_its_card_section(folders, tmp_path):
+    text, action, guided = folders
+    again = tmp_path / "again"
+    assert _attach(guided, action, again, "--scale", "5").returncode == 0
+    assert load_config(again).verb_guide.scale == 5.0
+    card = (again / "MODEL_CARD.md").read_text()
+    assert card.count("## Verb guidance") == 1 and "at scale 5" in card
 
 
 @pytest.mark.parametrize("change, message", [
     ({"scale": -1}, "verb_guide.scale"),
     ({"scale": "2"}, "verb_guide.scale"),
     ({"actions": ["jump"]}, "one label per class"),
+    ({"denoiser": {"cond": "action", "num_actions": 3, "latent_dim": 8}}, "is not the VAE's"),
     ("not an object", "verb_guide must be an object"),
 ])
 def test_a_broken_verb_guide_config_is_refused_when_loading(folders, tmp_path, change, message):

@@ -8,7 +8,6 @@ With ``skip=False`` the same layers run as a plain stack. Batch-first: (B, S, d)
 from __future__ import annotations
 
 import functools
-
 import math
 from dataclasses import asdict, dataclass
 

@@ -4,7 +4,7 @@
 
 For each model, the command and user wordings of scripts/vocabulary.py (20 prompts) at seeds 0..N-1, 5 s each: the
 share of takes the data checks call implausible (mld_core.data.take_checks: body height, floor, joint speeds), the
-mean joint jerk over the real clips' (mld_core.eval.quality.mean_jerk against the merged folder's real test windows),
+mean joint jerk over the real clips' (mld_core.eval.quality.mean_jerk against the CMU folder's real test windows),
 the foot-skating ratio and the deepest ground penetration. A guidance term that bends takes out of shape shows here
 before it shows in a verb's pass rate. A measurement, not a test.
 """
