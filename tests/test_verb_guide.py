@@ -175,3 +175,34 @@ def test_a_broken_verb_guide_config_is_refused_when_loading(folders, tmp_path, c
     (folder / "config.json").write_text(json.dumps(data))
     with pytest.raises(CheckpointError, match=message):
         load_config(folder)
+
+
+def _interval_script():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("verb_guide_interval",
+                                                  REPO / "research" / "v4" / "verb_guide_interval.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_guiding_an_interval_of_the_steps_adds_the_term_there_only(folders, monkeypatch):
+    """research/v4/verb_guide_interval.py: [0, 1) is every step (the guided take exactly), a half is neither the
+    guided take nor the text model's; a prompt naming no verb is untouched; an empty interval is refused."""
+    interval = _interval_script()
+    assert interval.guided_timesteps([901, 601, 301, 1], 0.0, 0.5) == {901, 601}
+    assert interval.guided_timesteps([901, 601, 301, 1], 0.5, 1.0) == {301, 1}
+    text, _, guided = folders
+    kw = dict(seconds=2.0, seed=5, num_inference_steps=4, repair=False, side_redraws=0)
+    plain = MLDPipeline.from_pretrained(text)(PROMPTS, **kw).joints
+    full = MLDPipeline.from_pretrained(guided)(PROMPTS, **kw).joints
+    monkeypatch.setattr(MLDPipeline, "_verb_guidance", MLDPipeline._verb_guidance)  # restored after the test
+    interval.guide_only_on(0.0, 1.0)
+    assert np.array_equal(MLDPipeline.from_pretrained(guided)(PROMPTS, **kw).joints, full)
+    interval.guide_only_on(0.0, 0.5)
+    half = MLDPipeline.from_pretrained(guided)(PROMPTS, **kw).joints
+    assert np.array_equal(half[1], plain[1])
+    for row in (0, 2):
+        assert not np.allclose(half[row], full[row], atol=1e-5) and not np.allclose(half[row], plain[row], atol=1e-5)
+    assert interval.main(["--interval", "0.5", "0.5", "--", "--data", "x"]) == 2
