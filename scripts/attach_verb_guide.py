@@ -26,6 +26,8 @@ sys.path.insert(0, str(REPO))
 from mld_core.checkpoint import (VERB_WEIGHTS, CheckpointError, VerbGuideConfig, load_config,  # noqa: E402
                                  load_weights, save_json, save_weights)
 from mld_core.data.verbs import VERBS  # noqa: E402
+from mld_core.fileio import build_new_folder  # noqa: E402
+from mld_core.inputs import InputError  # noqa: E402
 from mld_core.models.denoiser import LatentDenoiser  # noqa: E402
 from mld_core.models.vae import MotionVAE  # noqa: E402
 
@@ -115,17 +117,22 @@ def main(argv=None) -> int:
         if problem:
             print(f"error: {problem}", file=sys.stderr)
             return 2
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=".verb_guide_", dir=args.out.parent))
-        try:
-            shutil.copytree(args.text_model, tmp, dirs_exist_ok=True)
-            attach(text, args.action_model, action, tmp, args.scale)
-            if args.out.exists():
+
+        def write(folder: Path) -> None:
+            shutil.copytree(args.text_model, folder, dirs_exist_ok=True)
+            attach(text, args.action_model, action, folder, args.scale)
+
+        if not args.out.exists():
+            build_new_folder(args.out, write)  # of two runs racing for one new folder, one wins, the other keeps nothing
+        else:  # --overwrite: built beside the old folder, which is removed only once the new one is complete
+            tmp = Path(tempfile.mkdtemp(prefix=".verb_guide_", dir=args.out.parent))
+            try:
+                write(tmp)
                 shutil.rmtree(args.out)
-            tmp.rename(args.out)
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
-    except (CheckpointError, OSError) as exc:
+                tmp.rename(args.out)
+            finally:
+                shutil.rmtree(tmp, ignore_errors=True)
+    except (CheckpointError, InputError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(f"wrote {args.out}: {args.text_model} guided by {args.action_model}'s verbs at {args.scale:g}")

@@ -206,3 +206,26 @@ def test_guiding_an_interval_of_the_steps_adds_the_term_there_only(folders, monk
     for row in (0, 2):
         assert not np.allclose(half[row], full[row], atol=1e-5) and not np.allclose(half[row], plain[row], atol=1e-5)
     assert interval.main(["--interval", "0.5", "0.5", "--", "--data", "x"]) == 2
+
+
+def test_attaching_into_a_folder_another_run_took_meanwhile_keeps_that_run_s_folder(folders, tmp_path, capsys):
+    """Two runs racing for one new --out: the later one says so and leaves the first one's folder as it was."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("attach_verb_guide", ATTACH)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    text, action, _ = folders
+    out = tmp_path / "guided"
+    plain_attach = script.attach
+
+    def attach_while_another_run_finishes(*args):
+        plain_attach(*args)
+        out.mkdir()
+        (out / "theirs.txt").write_text("the other run's")
+
+    script.attach = attach_while_another_run_finishes
+    assert script.main([str(text), str(action), "--out", str(out)]) == 2
+    assert "another run" in capsys.readouterr().err
+    assert [p.name for p in out.iterdir()] == ["theirs.txt"]
+    assert [p.name for p in tmp_path.iterdir()] == ["guided"]  # no partial folder left beside it
