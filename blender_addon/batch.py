@@ -102,6 +102,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--side-redraws", type=int, default=None, metavar="N",
                         help="a take that misses the side its prompt names is drawn again from its seed, at most N "
                              "times (default: the model's, 2; 0: never, as takes made before 2026-11-27)")
+    parser.add_argument("--verb-redraws", type=int, default=None, metavar="N",
+                        help="a take that does not show the checked verb its prompt names (a jump, a crawl, a kick) "
+                             "is drawn again from its seed, at most N times (default: the model's; 0: never)")
     parser.add_argument("--draft", action="store_true",
                         help="Draft mode: the model's distilled denoiser and a guided step of its own (about 10x faster)")
     parser.add_argument("--model", metavar="DIR", help="model folder (default: the bundled model)")
@@ -425,9 +428,10 @@ def checked_inputs(args, addon) -> _Inputs:
         lines, default_seconds=args.seconds, seed=args.seed, extras=extras, steps=args.steps, guidance=args.guidance,
         variants=1, model_dir=model_dir, device=args.device, threads=args.threads, draft=args.draft,
     )
-    if args.side_redraws is not None:
-        redraws = inputs.int_in_range(args.side_redraws, "--side-redraws", 0, inputs.MAX_SIDE_REDRAWS)
-        requests = [r.with_(extra={**r.extra, "side_redraws": redraws}) for r in requests]
+    for name, most in (("side_redraws", inputs.MAX_SIDE_REDRAWS), ("verb_redraws", inputs.MAX_VERB_REDRAWS)):
+        if getattr(args, name) is not None:
+            redraws = inputs.int_in_range(getattr(args, name), "--" + name.replace("_", "-"), 0, most)
+            requests = [r.with_(extra={**r.extra, name: redraws}) for r in requests]
     shard = None
     if args.shard is not None:  # shard I of N: lines I, I + N, ... with the seeds they have in the whole run
         shard = (inputs.check_shard(args.shard), len(lines), shards.lines_fingerprint(lines))
@@ -507,7 +511,8 @@ def key_every_line(args, addon, inp: _Inputs, pipe, scene, obj) -> tuple[list, l
         take.name = report.actions[0]
         if take.coverage is not None and take.coverage.verdict == "unknown":
             print(f"warning: line {line.line}: {take.coverage.warning()}", file=sys.stderr)
-        level, side_text = side_report(take.prompt, getattr(take.badges, "side", None), take.draw)
+        level, side_text = side_report(take.prompt, getattr(take.badges, "side", None), take.draw,
+                                       redrawn_for=take.redrawn_for)
         if level:
             print(f"{level}: line {line.line}: {side_text}", file=sys.stderr)
         for kind, metres, met in take.residuals or []:

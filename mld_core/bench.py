@@ -85,7 +85,7 @@ def time_pipeline(pipe, prompts: Sequence[str], *, seconds: float = 4.0, batch_s
     prompts = list(prompts)
     if not prompts:
         raise ValueError("no prompts to time")
-    kw = {"side_redraws": 0}  # one sample per prompt (AITS): a take that misses its side is not drawn again
+    kw = {"side_redraws": 0, "verb_redraws": 0}  # one sample per prompt (AITS): no take is drawn again
     if num_inference_steps is not None:
         kw["num_inference_steps"] = num_inference_steps
     if guidance_scale is not None:

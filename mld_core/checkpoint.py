@@ -17,7 +17,7 @@ from safetensors.torch import load_file, save_file
 from mld_core.condition import side_contrast
 from mld_core.condition.content_anchor import ContentAnchorConfig
 from mld_core.fileio import atomic_write
-from mld_core.inputs import MAX_SIDE_REDRAWS
+from mld_core.inputs import MAX_SIDE_REDRAWS, MAX_VERB_REDRAWS
 from mld_core.models.denoiser import DenoiserConfig
 from mld_core.models.vae import VAEConfig
 from mld_core.take_fixes.repair import RepairConfig
@@ -116,6 +116,7 @@ class ModelConfig:
     repair: RepairConfig = field(default_factory=RepairConfig)  # mld_core.take_fixes.repair, on free 263-d takes
     stepping: SteppingConfig = field(default_factory=SteppingConfig)  # mld_core.take_fixes.stepping: latents step
     side_redraws: int = 2  # a free take that misses the side its prompt names is drawn again, at most this often
+    verb_redraws: int = 0  # a free take that does not show the checked verbs its prompt names: drawn again, as often
     content_anchor: ContentAnchorConfig = field(default_factory=ContentAnchorConfig)  # prompts' vectors moved
     side_contrast: float = 0.0  # a sided prompt's vector pushed from its mirror's (mld_core.condition.side_contrast)
     # a bare command ("jump") encoded as the captions word it ("a person jumps"; mld_core.condition.wording)
@@ -244,9 +245,10 @@ def check_config(config: ModelConfig) -> None:
         raise ValueError("std must be positive")
     _check_repair(config.repair)
     _check_stepping(config.stepping)
-    redraws = config.side_redraws
-    if isinstance(redraws, bool) or not isinstance(redraws, int) or not 0 <= redraws <= MAX_SIDE_REDRAWS:
-        raise ValueError(f"side_redraws must be a whole number in 0..{MAX_SIDE_REDRAWS}, got {redraws!r}")
+    for name, most in (("side_redraws", MAX_SIDE_REDRAWS), ("verb_redraws", MAX_VERB_REDRAWS)):
+        redraws = getattr(config, name)
+        if isinstance(redraws, bool) or not isinstance(redraws, int) or not 0 <= redraws <= most:
+            raise ValueError(f"{name} must be a whole number in 0..{most}, got {redraws!r}")
     config.content_anchor.check()
     side_contrast.check_weight(config.side_contrast)
     if not isinstance(config.commands_as_sentences, bool):

@@ -14,7 +14,8 @@ import importlib
 import sys
 import warnings
 
-from mld_core.inputs import MAX_SIDE_REDRAWS, InputError, check_device, check_seed, check_threads, int_in_range
+from mld_core.inputs import (MAX_SIDE_REDRAWS, MAX_VERB_REDRAWS, InputError, check_device, check_seed, check_threads,
+                             int_in_range)
 
 # Shared by generate, evaluate and bench (names here so that building the parser needs no torch).
 PRECISION_CHOICES = ("fp32", "bf16")
@@ -47,6 +48,8 @@ def check_common_options(args) -> None:
         check_seed(args.seed, what="--seed")
     if getattr(args, "side_redraws", None) is not None:
         int_in_range(args.side_redraws, "--side-redraws", 0, MAX_SIDE_REDRAWS)
+    if getattr(args, "verb_redraws", None) is not None:
+        int_in_range(args.verb_redraws, "--verb-redraws", 0, MAX_VERB_REDRAWS)
     if getattr(args, "device", None) is not None:  # cpu, cuda, mps or auto: resolved to what torch will use
         args.device = check_device(args.device, "--device")
 

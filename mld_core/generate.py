@@ -237,7 +237,7 @@ def _run(args, take_report) -> int:
     seeds = [args.seed + i * args.variants for i in args.line_indices]
     kwargs = dict(seconds=seconds, num_inference_steps=args.steps, guidance_scale=args.guidance, seed=seeds,
                   num_variants=args.variants, rank=args.best is not None, constraints=constraints or None,
-                  draft=args.draft, side_redraws=args.side_redraws)
+                  draft=args.draft, side_redraws=args.side_redraws, verb_redraws=args.verb_redraws)
     if args.sequence is not None:  # one motion, segment k continuing segment k-1 (seed + k)
         out = pipe.sequence(list(zip(prompts, seconds)), seed=args.seed, overlap_s=SEQUENCE_OVERLAP_S,
                             num_inference_steps=args.steps, guidance_scale=args.guidance, draft=args.draft)
@@ -290,7 +290,8 @@ def _shard_record(args, pipe, rows: int) -> tuple[dict | None, list | None]:
     settings = {"model_id": pipe.model_id, "model": shards.model_fingerprint(args.model),
                 "prompts": shards.lines_fingerprint(args.all_lines), "seconds": args.seconds, "seed": args.seed,
                 "steps": args.steps, "guidance": args.guidance, "variants": args.variants, "best": args.best,
-                "draft": args.draft, "side_redraws": args.side_redraws, "precision": args.precision,
+                "draft": args.draft, "side_redraws": args.side_redraws, "verb_redraws": args.verb_redraws,
+                "precision": args.precision,
                 "draft_precision": args.draft_precision if args.draft else None, "strict": args.strict,
                 "unconditional": args.unconditional, "action": args.action, "loop": args.loop, "fps": args.fps,
                 "keys": shards.file_fingerprint(args.keys), "path": shards.file_fingerprint(args.path),
@@ -321,6 +322,10 @@ def register(groups) -> None:
     p.add_argument("--side-redraws", type=int, default=None, metavar="N",
                    help="a take that misses the side its prompt names (turns right for 'turns left', waves the other "
                         "hand) is drawn again from its seed, at most N times (default: the model's, 2; 0: never)")
+    p.add_argument("--verb-redraws", type=int, default=None, metavar="N",
+                   help="a take that does not show the checked verb its prompt names (a jump for 'jumps', a crawl, a "
+                        "kick: docs/library.md) is drawn again from its seed, at most N times (default: the model's; "
+                        "0: never)")
     p.add_argument("--variants", type=int, default=1, help="motions per prompt (seeds seed, seed+1, ...)")
     p.add_argument("--best", type=int, default=None, metavar="K",
                    help="score every variant (adherence, skating, float, penetration, jitter: docs/quality.md), "

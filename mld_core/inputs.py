@@ -28,6 +28,7 @@ SEED_MAX = 2**31 - 1
 MAX_THREADS = 1024
 MAX_FPS = 1000.0
 MAX_SIDE_REDRAWS = 8  # model config side_redraws: draws beyond a take's first when it misses its prompt's side
+MAX_VERB_REDRAWS = 8  # model config verb_redraws: draws beyond a take's first when it misses its prompt's verb
 MAX_JSON_BYTES = 64 * 2**20  # a user's JSON file (a root path of 100,000 points is about 3 MB)
 MAX_JSON_DEPTH = 32  # nesting of arrays and objects; the deepest format here nests 6
 MAX_JSON_NUMBER = 1e12  # beyond any frame, coordinate, seed or setting; larger numbers overflow later arithmetic

@@ -81,7 +81,9 @@ class MLDOutput:
     timings: dict = field(default_factory=dict)
     badges: list | None = None  # per row a mld_core.eval.quality.Badges when generated with rank=True
     residuals: list | None = None  # per row [(kind, metres, met)] when generated with constraints
-    draws: list | None = None  # per row, which z_T of its seed the take is (0: the first; side redraws: 1, 2, ...)
+    draws: list | None = None  # per row, which z_T of its seed the take is (0: the first; redraws: 1, 2, ...)
+    # per row, the redraw that drew it again ("side", "verb"), or found no draw that met its prompt (either + " missed")
+    redrawn_for: list | None = None
     seams: list | None = None  # per row of a sequence [(segment, largest joint jerk m/s^3 at its seam, within real)]
 
     def select(self, rows: Sequence[int]) -> "MLDOutput":
@@ -93,7 +95,8 @@ class MLDOutput:
 
         return replace(self, features=self.features[rows], joints=self.joints[rows], lengths=self.lengths[rows],
                        prompts=pick(self.prompts), seeds=pick(self.seeds), badges=pick(self.badges),
-                       residuals=pick(self.residuals), draws=pick(self.draws), seams=pick(self.seams))
+                       residuals=pick(self.residuals), draws=pick(self.draws), redrawn_for=pick(self.redrawn_for),
+                       seams=pick(self.seams))
 
 
 def _prompt_list(prompts) -> list[str]:
@@ -146,6 +149,7 @@ class _Call:
     num_variants: int
     draw: int
     side_redraws: int  # 0 for a model not conditioned on text
+    verb_redraws: int  # 0 for a model not conditioned on text
 
 
 class MLDPipeline:
@@ -380,7 +384,8 @@ class MLDPipeline:
                  guidance_scale: float | None = None, seed: int | Sequence[int] = 0, num_variants: int = 1,
                  callback: Callable[[int, int], bool | None] | None = None, unconditional: bool = False,
                  rank: bool = False, constraints=None, repair: bool = True, draft: bool = False,
-                 step: bool | None = None, draw: int = 0, side_redraws: int | None = None) -> MLDOutput:
+                 step: bool | None = None, draw: int = 0, side_redraws: int | None = None,
+                 verb_redraws: int | None = None) -> MLDOutput:
         """Generate ``num_variants`` motions per prompt; row i*num_variants + v uses seed ``seed + v``, or
         ``seed[i] + v`` when ``seed`` is a sequence (one per prompt). Any row equals the single run with its seed (a
         Draft in bf16: to within bf16 rounding, up to about 2 cm).
@@ -393,12 +398,14 @@ class MLDPipeline:
         - ``repair``: a free take's repairs (config ``repair``: one skeleton, planted feet).
         - ``side_redraws`` (default: config ``side_redraws``): a free take that misses the side its prompt names is
           drawn again, at most this often; ``draw`` k starts each row from the (k+1)-th z_T of its seed
-          (``out.draws`` says which draw each row is).
+          (``out.draws`` says which draw each row is, ``out.redrawn_for`` which redraw drew it).
+        - ``verb_redraws`` (default: config ``verb_redraws``): a free take that does not show the checked verbs its
+          prompt names (mld_core.take_fixes.verb_redraw) is drawn again, at most this often.
         - ``rank``: every row scored (``out.badges``), each prompt's variants best first."""
         t_start, timings = time.perf_counter(), {}
         # 1. Inputs, checked before any work: one row per (prompt, variant), each with its own seed.
         call = self._call_rows(prompts, seconds, actions, num_inference_steps, guidance_scale, seed, num_variants,
-                               unconditional, constraints, draft, draw, side_redraws)
+                               unconditional, constraints, draft, draw, side_redraws, verb_redraws)
         # 2. Condition c and the null condition for classifier-free guidance (mld_core.condition.text: each prompt
         #    encoded once and kept, its sentence vector anchored and its named side made louder).
         t0 = time.perf_counter()
@@ -417,11 +424,12 @@ class MLDPipeline:
                 raise Cancelled(f"cancelled at step {k + 1} of {total}")
         timings["diffusion_s"] = time.perf_counter() - t0
         # 5. Decode and fix the takes in their order (mld_core.take_fixes.order): stepping, constraints (or the plain
-        #    decode x = D(z_0)), repair, side redraw; each where it applies.
+        #    decode x = D(z_0)), repair, side redraw, verb redraw; each where it applies.
         takes = Takes(z, z, call.lengths, call.prompts, [call.draw] * len(call.seeds), draft)
         redo = partial(self._redraw, call, dict(callback=callback, repair=repair, draft=draft, step=step))
         for fix in fixes_for(self.config, draft=draft, step=repair if step is None else step, repair=repair,
-                             constraints=constraints, side_redraws=call.side_redraws, redo=redo):
+                             constraints=constraints, side_redraws=call.side_redraws, redo=redo,
+                             verb_redraws=call.verb_redraws, draw=call.draw):
             t0 = time.perf_counter()
             takes = fix.apply(takes, self.decoder)
             timings.update(dict.fromkeys(fix.timings, time.perf_counter() - t0))
@@ -433,7 +441,7 @@ class MLDPipeline:
         return out
 
     def _call_rows(self, prompts, seconds, actions, num_inference_steps, guidance_scale, seed, num_variants,
-                   unconditional, constraints, draft, draw, side_redraws) -> _Call:
+                   unconditional, constraints, draft, draw, side_redraws, verb_redraws) -> _Call:
         """Stage 1: a call's arguments checked and spread over its rows (errors before any work)."""
         if self.denoiser is None:
             raise CheckpointError("this model folder has only a VAE; sample with sample_prior() or train a denoiser")
@@ -473,13 +481,16 @@ class MLDPipeline:
         draw = inputs.int_in_range(draw, "draw", 0, 1000)
         redraws = self.config.side_redraws if side_redraws is None else \
             inputs.int_in_range(side_redraws, "side_redraws", 0, inputs.MAX_SIDE_REDRAWS)
+        verb_redraws = self.config.verb_redraws if verb_redraws is None else \
+            inputs.int_in_range(verb_redraws, "verb_redraws", 0, inputs.MAX_VERB_REDRAWS)
         _check_constraints(constraints, frames)
         return _Call(cond_kind, draft, prompts=[prompts[i] for i, _ in rows],
                      actions=[actions[i] for i, _ in rows] if actions is not None else None,
                      seconds=[secs[i] for i, _ in rows], seeds=[base[i] + v for i, v in rows],
                      lengths=torch.tensor([frames[i] for i, _ in rows], device=self.device), steps=steps, guidance=s,
                      teacher_steps=min(self.config.draft.teacher_steps, steps - 1) if draft else 0,
-                     num_variants=num_variants, draw=draw, side_redraws=redraws if cond_kind == "text" else 0)
+                     num_variants=num_variants, draw=draw, side_redraws=redraws if cond_kind == "text" else 0,
+                     verb_redraws=verb_redraws if cond_kind == "text" else 0)
 
     def _conditions(self, call: _Call) -> Conditions:
         """Stage 2: the sampling denoiser's condition and null tokens, and a Draft's teacher's own."""
@@ -519,9 +530,10 @@ class MLDPipeline:
 
     def _redraw(self, call: _Call, kwargs: dict, rows: list, draw: int) -> MLDOutput:
         """Rows ``rows`` of ``call`` made again from draw ``draw`` of their seeds, as they were first made but without
-        redraws (a side redraw's ``redo``)."""
+        redraws (the side and verb redraws' ``redo``)."""
         return self([call.prompts[r] for r in rows], [call.seconds[r] for r in rows],
-                    seed=[call.seeds[r] for r in rows], draw=draw, side_redraws=0, num_inference_steps=call.steps,
+                    seed=[call.seeds[r] for r in rows], draw=draw, side_redraws=0, verb_redraws=0,
+                    num_inference_steps=call.steps,
                     guidance_scale=call.guidance, **kwargs)
 
     def _output(self, call: _Call, takes: Takes, constraints, timings: dict) -> MLDOutput:
@@ -530,7 +542,7 @@ class MLDPipeline:
         if joints is None:
             joints = self.decoder.joints(takes.features, call.lengths.tolist())
         out = MLDOutput(takes.features, joints, call.lengths.cpu().numpy(), call.prompts, call.seeds, self.config.fps,
-                        self.model_id, timings, draws=takes.draws)
+                        self.model_id, timings, draws=takes.draws, redrawn_for=takes.redrawn_for)
         if constraints:
             out.residuals = [constraints.residuals(joints[i, :n]) for i, n in enumerate(out.lengths)]
         return out
@@ -559,7 +571,8 @@ class MLDPipeline:
         t_start = time.perf_counter()
         segments, overlap = self._sequence_segments(segments, overlap_s)
         repair = kwargs.pop("repair", True)  # per segment, once they are joined (below)
-        kwargs["side_redraws"] = 0  # joined segments are not drawn again (a side is asked of a segment, not the take)
+        # joined segments are not drawn again (a side or a verb is asked of a segment, not of the take)
+        kwargs["side_redraws"] = kwargs["verb_redraws"] = 0
         step = kwargs.pop("step", repair)  # each segment's sample, before it is joined
         first = self(segments[0][0], segments[0][1], seed=seed, repair=False, step=step, **kwargs)
         features = first.features[0, : int(first.lengths[0])]  # (T, F)

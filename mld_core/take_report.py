@@ -62,29 +62,53 @@ def redrawn_note(prompt: str, draw: int, side: str | None = "named") -> str:
 
 PANEL_RETRY = " (try another seed, or more variants)"  # the add-on's report and the batch
 CLI_RETRY = "; try another --seed, or --variants 4 --best 1 (ranking puts such takes last)"
+# what to try when no draw showed the prompt's verbs (ranking does not judge verbs)
+VERB_RETRY = {PANEL_RETRY: " (try another seed)", CLI_RETRY: "; try another --seed, or more --verb-redraws"}
 
 
-def side_report(prompt: str, side: str | None, draw: int, retry: str = PANEL_RETRY) -> tuple[str, str]:
-    """What the user is told about a take's side, from its side badge ``side`` and its ``draw``: ("warning", what it
-    did against the prompt + ``retry``) when it used only the opposite side; ("note", why it is a later draw of its
-    seed) when the side redraws drew it again; else ("", "")."""
+def verb_note(prompt: str, draw: int, redrawn_for: str) -> str:
+    """'' unless the verb redraws drew the take (``redrawn_for`` "verb" or "verb missed"); then why it is a later
+    draw of its seed, or that no draw showed the verbs its prompt names."""
+    from mld_core.data.verbs import VERB_SHOWN
+    from mld_core.take_fixes.verb_redraw import asked_verbs
+
+    verbs = asked_verbs(prompt) if redrawn_for in ("verb", "verb missed") else []
+    if not verbs:
+        return ""
+    asked = " and ".join(VERB_SHOWN[v] for v in verbs)
+    if redrawn_for == "verb missed":
+        return f"no draw of its seed showed {asked} as the prompt says"
+    return f"draw {draw} of its seed: an earlier one did not show {asked} as the prompt says"
+
+
+def side_report(prompt: str, side: str | None, draw: int, retry: str = PANEL_RETRY,
+                redrawn_for: str | None = None) -> tuple[str, str]:
+    """What the user is told about a take's side and verbs, from its side badge ``side``, its ``draw`` and
+    ``redrawn_for`` (MLDOutput.redrawn_for's entry; None when not known, read as the side redraws'): ("warning", what
+    it did against the prompt + ``retry``) when it used only the opposite side, or when the verb redraws found no
+    draw that shows the prompt's verbs; ("note", why it is a later draw of its seed) when a redraw drew it again;
+    else ("", "")."""
     note = opposite_side_note(prompt, side)
     if note:
         return "warning", note + retry
-    note = redrawn_note(prompt, draw, side)
+    verb = verb_note(prompt, draw, redrawn_for or "")
+    if verb:
+        return ("warning", verb + VERB_RETRY.get(retry, retry)) if redrawn_for == "verb missed" else ("note", verb)
+    note = redrawn_note(prompt, draw, side) if not (redrawn_for or "").startswith("verb") else ""
     return ("note", note) if note else ("", "")
 
 
 def side_lines(out) -> list[str]:
-    """``generate``'s line per take of ``out`` that used the opposite side or is a later draw (side_report); each
-    take's side from its badge when ranked, else checked here."""
+    """``generate``'s line per take of ``out`` that used the opposite side, shows no verb its redraws looked for, or
+    is a later draw (side_report); each take's side from its badge when ranked, else checked here."""
     lines = []
     for row, prompt in enumerate(out.prompts):
         if out.badges is not None:
             side = out.badges[row].side
         else:
             side = side_badge(prompt, out.joints[row, : int(out.lengths[row])], out.fps)
-        level, text = side_report(prompt, side, out.draws[row] if out.draws else 0, CLI_RETRY)
+        reason = out.redrawn_for[row] if getattr(out, "redrawn_for", None) else None
+        level, text = side_report(prompt, side, out.draws[row] if out.draws else 0, CLI_RETRY, reason)
         if level:
             joint = " is" if level == "note" else ":"  # "take 0 (seed 41) is draw 1 ...", "take 0 (seed 41): it turns"
             lines.append(f"{level}: take {row} (seed {out.seeds[row]}){joint} {text}")

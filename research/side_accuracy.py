@@ -45,7 +45,7 @@ sys.path.insert(0, str(REPO))
 
 from mld_core.eval import physical  # noqa: E402
 from mld_core.eval.quality import foot_skating_ratio  # noqa: E402
-from mld_core.inputs import MAX_SIDE_REDRAWS  # noqa: E402
+from mld_core.inputs import MAX_SIDE_REDRAWS, MAX_VERB_REDRAWS  # noqa: E402
 from mld_core.motion.features import mirror_text  # noqa: E402
 
 SIDED = ("raise-up-left-hand", "raise-up-right-hand", "raise-up-both-hands", "wave-left-hand", "wave-right-hand",
@@ -315,11 +315,11 @@ def build_requests(clips: dict, modes: list[str], lengths: list, seeds: int, max
 
 def generate(pipe, reqs: list[dict], batch: int, steps: int | None, guidance: float | None, fps: float,
              tallies: dict, repair: bool = True, per_prompt: dict | None = None,
-             side_redraws: int | None = None, redraws: dict | None = None) -> float:
+             side_redraws: int | None = None, redraws: dict | None = None, verb_redraws: int | None = None) -> float:
     """Run the requests through the pipeline in batches (grouped by seed/variants) and tally the results, per
     (source, length) and content; paraphrases also per (length, content, prompt) into ``per_prompt``; into
     ``redraws``: under "kept", per "source@length" and content, how many takes are a later draw of their seed
-    (the pipeline's side redraws); under "seconds", the time spent drawing again."""
+    (the pipeline's side and verb redraws); under "seconds", the time spent drawing again."""
     from tqdm import tqdm
 
     cond = pipe.denoiser.config.cond if pipe.denoiser is not None else "none"
@@ -335,7 +335,7 @@ def generate(pipe, reqs: list[dict], batch: int, steps: int | None, guidance: fl
                 chunk = rs[a:a + per]
                 kwargs = dict(seconds=[r["seconds"] for r in chunk], seed=seed, num_variants=variants,
                               num_inference_steps=steps, guidance_scale=guidance, repair=repair,
-                              side_redraws=side_redraws)
+                              side_redraws=side_redraws, verb_redraws=verb_redraws)
                 if cond == "action":
                     out = pipe([r["content"] for r in chunk], actions=[r["content"] for r in chunk], **kwargs)
                 else:
@@ -355,7 +355,8 @@ def generate(pipe, reqs: list[dict], batch: int, steps: int | None, guidance: fl
                         kept["takes"] += 1
                         kept["redrawn"] += int(bool(out.draws and out.draws[row]))
                 if redraws is not None:
-                    redraws["seconds"] = redraws.get("seconds", 0.0) + out.timings.get("side_redraws_s", 0.0)
+                    spent = sum(out.timings.get(k, 0.0) for k in ("side_redraws_s", "verb_redraws_s"))
+                    redraws["seconds"] = redraws.get("seconds", 0.0) + spent
                 bar.update(len(out.lengths))
     return time.perf_counter() - t0
 
@@ -505,9 +506,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--side-redraws", type=int, default=None, metavar="N",
                     help="draws of a take beyond its first when it misses the side its prompt names (default: the "
                          "model's config side_redraws; 0: every take is its seed's first draw, the model alone)")
+    ap.add_argument("--verb-redraws", type=int, default=None, metavar="N",
+                    help="draws of a take beyond its first when it does not show the checked verb its prompt names "
+                         "(default: the model's config verb_redraws; 0: the model alone)")
     args = ap.parse_args(argv)
     if args.side_redraws is not None and not 0 <= args.side_redraws <= MAX_SIDE_REDRAWS:
         ap.error(f"--side-redraws must be between 0 and {MAX_SIDE_REDRAWS}, got {args.side_redraws}")
+    if args.verb_redraws is not None and not 0 <= args.verb_redraws <= MAX_VERB_REDRAWS:
+        ap.error(f"--verb-redraws must be between 0 and {MAX_VERB_REDRAWS}, got {args.verb_redraws}")
 
     contents = [c.strip() for c in args.contents.split(",") if c.strip()]
     unknown = [c for c in contents if physical.expected_for(c) is None]
@@ -583,7 +589,7 @@ def main(argv: list[str] | None = None) -> int:
             reqs = build_requests(clips, modes, lengths, args.seeds, args.max_clips, pipe.min_seconds,
                                   pipe.max_seconds, frozenset(skip), args.first_seed)
             seconds += generate(pipe, reqs, args.batch, args.steps, args.guidance, fps, tallies, not args.no_repair,
-                                per_prompt, args.side_redraws, report.setdefault("redraws", {}))
+                                per_prompt, args.side_redraws, report.setdefault("redraws", {}), args.verb_redraws)
         n = sum(t.n for per in tallies.values() for t in per.values())
         print(f"generated and scored {n} motions in {seconds:.1f} s ({seconds / max(n, 1):.3f} s each)",
               file=sys.stderr)
@@ -602,6 +608,7 @@ def main(argv: list[str] | None = None) -> int:
                       first_seed=args.first_seed,
                       repair=not args.no_repair,
                       side_redraws=pipe.config.side_redraws if args.side_redraws is None else args.side_redraws,
+                      verb_redraws=pipe.config.verb_redraws if args.verb_redraws is None else args.verb_redraws,
                       steps=args.steps, guidance=args.guidance, max_clips=args.max_clips, generation_s=seconds)
 
     print_table(report, contents)

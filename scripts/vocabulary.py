@@ -3,7 +3,7 @@ inverted, stand up, climb, kick, throw), prompts worded three ways, scored by th
 against real CMU motion's pass rate of the same check.
 
     python scripts/vocabulary.py --data DIR [--model DIR] [--seeds 8] [--seconds 5] [--threads 2] [--json FILE]
-        [--verbs jump,crawl,...] [--vae-recon] [--split test|val|train]
+        [--verbs jump,crawl,...] [--verb-redraws N] [--vae-recon] [--split test|val|train]
 
 DIR is a folder written by ``python -m mld_core data prepare cmu-joints``. The three wordings per verb:
   caption: test-split captions that ask for the verb (captions written from the whole trial; the first
@@ -15,7 +15,9 @@ DIR is a folder written by ``python -m mld_core data prepare cmu-joints``. The t
 Each prompt is generated with ``--seeds`` seeds (seeds 0..N-1) at ``--seconds``. The real rate is the check's pass
 rate on the real test windows of that verb (``--split``'s instead; all splits when it has fewer than 8). Prints one
 row per verb and wording: takes, pass rate, the real rate and their ratio (the target is >= 0.8); ``--json`` writes
-every take's prompt, seed and pass. ``--vae-recon`` generates nothing: it passes the real windows through the
+every take's prompt, seed, pass and draw. ``--verb-redraws`` (default: the model's config ``verb_redraws``) draws a
+take that misses its prompt's verb again: 0 measures the model alone, as v4's targets do; the model's own count
+measures what a user gets, with the share of takes drawn again and the seconds spent on it. ``--vae-recon`` generates nothing: it passes the real windows through the
 model's VAE and prints each verb's pass rate before and after (the ceiling a denoiser on that VAE can reach; a
 VAE-only run folder works), with the median value of the verb's check before and after (a throw's peak wrist speed
 in m/s, a kick's held ankle height in m: ``mld_core.eval.physical``), which moves before a pass rate on a few dozen
@@ -40,6 +42,7 @@ from mld_core.data.cmu_joints import whole_trial_windows  # noqa: E402
 from mld_core.data.dataset import read_captions, split_ids  # noqa: E402
 from mld_core.data.verbs import VERBS, verbs_in  # noqa: E402
 from mld_core.eval import physical  # noqa: E402
+from mld_core.inputs import MAX_VERB_REDRAWS  # noqa: E402
 
 COMMANDS = {"jump": "jump", "get_low": "squat down", "on_ground": "lie down on the floor", "crawl": "crawl",
             "reach_floor": "pick something up from the floor", "inverted": "do a cartwheel",
@@ -117,6 +120,9 @@ def main(argv=None) -> int:
     ap.add_argument("--verbs", default=",".join(VERBS), help="comma-separated verbs (default: all)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--verb-redraws", type=int, default=None, metavar="N",
+                    help="draws of a take beyond its first when it misses its prompt's verb (default: the model's "
+                         "config verb_redraws; 0: the model alone)")
     ap.add_argument("--vae-recon", action="store_true",
                     help="only the real windows through the model's VAE (works on a VAE-only run folder)")
     ap.add_argument("--split", default="test", choices=("test", "val", "train"),
@@ -132,6 +138,10 @@ def main(argv=None) -> int:
         print(f"error: unknown verbs {unknown} (known: {', '.join(VERBS)}) or --seeds outside 1..256",
               file=sys.stderr)
         return 2
+    if args.verb_redraws is not None and not 0 <= args.verb_redraws <= MAX_VERB_REDRAWS:
+        print(f"error: --verb-redraws must be between 0 and {MAX_VERB_REDRAWS}, got {args.verb_redraws}",
+              file=sys.stderr)
+        return 2
     import torch
 
     from mld_core.pipeline import MLDPipeline
@@ -139,7 +149,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     pipe = MLDPipeline.from_pretrained(args.model)
     whole = set(whole_trial_windows(args.data))
-    rows, takes, start = [], [], time.perf_counter()
+    rows, takes, start, redraw_s = [], [], time.perf_counter(), 0.0
     if args.vae_recon:
         print(f"model {pipe.model_id}: the real windows through its VAE")
         print(f"{'verb':12} {'windows':>7} {'real':>6} {'recon':>6} {'median value real':>18} {'recon':>6}")
@@ -159,7 +169,9 @@ def main(argv=None) -> int:
     if missing:
         print(f"error: this action-conditioned model has no label {', '.join(missing)}", file=sys.stderr)
         return 2
-    print(f"model {pipe.model_id}; {args.seeds} seeds x {args.seconds:g} s" + (" (action labels)" if by_action else ""))
+    redraws = pipe.config.verb_redraws if args.verb_redraws is None else args.verb_redraws
+    print(f"model {pipe.model_id}; {args.seeds} seeds x {args.seconds:g} s" + (" (action labels)" if by_action else "")
+          + (f"; verb redraws {redraws}" if redraws and not by_action else ""))
     print(f"{'verb':12} {'wording':15} {'takes':>5} {'pass':>6} {'real':>6} {'ratio':>6}")
     for verb in verbs:
         wordings, real_wins = prompts_for(args.data, verb, whole, args.captions, args.split)
@@ -170,19 +182,26 @@ def main(argv=None) -> int:
             passed = []
             for prompt in prompts:
                 actions = {"actions": [prompt]} if by_action else {}
-                out = pipe([prompt], seconds=args.seconds, seed=0, num_variants=args.seeds, **actions)
+                out = pipe([prompt], seconds=args.seconds, seed=0, num_variants=args.seeds, verb_redraws=redraws,
+                           **actions)
+                redraw_s += out.timings.get("verb_redraws_s", 0.0)
                 for v in range(len(out.joints)):
                     ok = physical.shows(out.joints[v, : out.lengths[v]], verb)
                     passed.append(ok)
-                    takes.append({"verb": verb, "wording": wording, "prompt": prompt, "seed": v, "pass": bool(ok)})
+                    draw = int(out.draws[v]) if out.draws else 0
+                    takes.append({"verb": verb, "wording": wording, "prompt": prompt, "seed": v, "pass": bool(ok),
+                                  "draw": draw})
             rate = float(np.mean(passed)) if passed else float("nan")
             ratio = rate / real if real > 0 else float("nan")
             rows.append({"verb": verb, "wording": wording, "prompts": prompts, "takes": len(passed), "pass": rate,
                          "real": real, "real_windows": len(real_wins), "ratio": ratio})
             print(f"{verb:12} {wording:15} {len(passed):5d} {rate:6.2f} {real:6.2f} {ratio:6.2f}", flush=True)
-    print(f"{len(takes)} takes in {time.perf_counter() - start:.0f} s")
+    redrawn = float(np.mean([t["draw"] > 0 for t in takes])) if takes else 0.0
+    print(f"{len(takes)} takes in {time.perf_counter() - start:.0f} s"
+          + (f"; {redrawn:.2f} of them a later draw, {redraw_s:.0f} s spent drawing again" if redraws else ""))
     if args.json:
         args.json.write_text(json.dumps({"model": pipe.model_id, "seeds": args.seeds, "seconds": args.seconds,
+                                         "verb_redraws": redraws, "redrawn": redrawn, "redraw_s": redraw_s,
                                          "rows": rows, "takes": takes}, indent=1) + "\n")
     return 0
 

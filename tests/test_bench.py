@@ -125,4 +125,4 @@ def test_aits_times_one_draw_per_prompt():
         return None
 
     time_pipeline(pipe, ["a person turns left while walking"], warmup=0)
-    assert [c["side_redraws"] for c in calls] == [0]
+    assert [(c["side_redraws"], c["verb_redraws"]) for c in calls] == [(0, 0)]

@@ -5,6 +5,7 @@ refused in one line. The source is built here from the Bandai fixture clips in C
 from __future__ import annotations
 
 import io
+import itertools
 import json
 import tarfile
 from pathlib import Path
@@ -344,6 +345,37 @@ def test_the_vocabulary_benchmark_asks_an_action_model_by_its_labels(clips, tmp_
     assert [(r["verb"], r["wording"], r["prompts"], r["takes"]) for r in rows] == [("jump", "action", ["jump"], 2)]
     assert vocabulary.main(argv + ["--verbs", "jump,kick"]) == 2
     assert capsys.readouterr().err.strip() == "error: this action-conditioned model has no label kick"
+
+
+def test_the_vocabulary_benchmark_measures_with_the_verb_redraws_it_is_given(clips, tmp_path, capsys, monkeypatch):
+    """scripts/vocabulary.py --verb-redraws N: each take records its draw, the JSON the count and the share drawn
+    again; 0 is the model alone (every take its seed's first draw); a count out of range is one line, exit 2."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "scripts"))
+    import vocabulary
+
+    from mld_core.eval import physical
+    from mld_core.testing import tiny_model
+
+    out = tmp_path / "data"
+    assert prepare(source(tmp_path / "cmu", clips), out, capsys)[0] == 0
+    model = tiny_model(tmp_path / "text")
+    argv = ["--data", str(out), "--model", str(model), "--seeds", "2", "--seconds", "2", "--threads", "1",
+            "--verbs", "jump"]
+    calls = itertools.count()
+    # per prompt, 2 seeds: the two first draws miss the jump, the two redraws (draw 3: after 2 side redraws) show it,
+    # and so do the two takes then scored
+    monkeypatch.setattr(physical, "shows", lambda joints, verb, fps=20.0, result=None: next(calls) % 6 >= 2)
+    assert vocabulary.main(argv + ["--verb-redraws", "2", "--json", str(tmp_path / "v.json")]) == 0
+    report = json.loads((tmp_path / "v.json").read_text())
+    assert report["verb_redraws"] == 2 and report["redrawn"] == 1.0 and report["redraw_s"] > 0
+    assert {t["draw"] for t in report["takes"]} == {3} and all(r["pass"] == 1.0 for r in report["rows"] if r["takes"])
+    assert "verb redraws 2" in capsys.readouterr().out
+    monkeypatch.setattr(physical, "shows", lambda joints, verb, fps=20.0, result=None: False)
+    assert vocabulary.main(argv + ["--verb-redraws", "0", "--json", str(tmp_path / "v.json")]) == 0
+    report = json.loads((tmp_path / "v.json").read_text())
+    assert report["verb_redraws"] == 0 and {t["draw"] for t in report["takes"]} == {0} and report["redraw_s"] == 0
+    assert vocabulary.main(argv + ["--verb-redraws", "9"]) == 2
+    assert capsys.readouterr().err.strip() == "error: --verb-redraws must be between 0 and 8, got 9"
 
 
 def test_the_vocabulary_benchmark_reads_real_windows_through_a_vae(clips, tmp_path, capsys, monkeypatch):

@@ -158,3 +158,24 @@ def test_the_batch_draws_a_take_again_unless_told_not_to(tmp_path, tiny_with_ind
                       user_dir=tmp_path / "blender_user", timeout=180)
     assert proc.returncode == 2 and "--side-redraws must be between 0 and 8" in proc.stderr
     assert not (tmp_path / "bad.blend").exists()
+
+
+def test_the_batch_draws_a_take_again_for_its_verb_when_told_to(tmp_path, tiny_with_index):
+    """--verb-redraws N: the take the batch keys is the pipeline's, and the batch says why it is a later draw (or
+    that no draw showed the verb); the side's note is not given for it."""
+    import json
+
+    from bpy_util import run_python
+    from mld_core.pipeline import MLDPipeline
+
+    prompt = "a person jumps over a puddle"
+    out = MLDPipeline.from_pretrained(tiny_with_index)(prompt, 1.5, seed=0, num_inference_steps=2, verb_redraws=2)
+    assert out.redrawn_for[0] in ("verb", "verb missed")  # the tiny model's first draw of seed 0 shows no jump
+    words = "an earlier one did not show a jump" if out.redrawn_for[0] == "verb" else "no draw of its seed showed"
+    blend = tmp_path / "jump.blend"
+    proc = run_python([REPO / "blender_addon" / "batch.py", "--prompt", prompt, "--model", tiny_with_index, "--steps",
+                       "2", "--seconds", "1.5", "--seed", "0", "--verb-redraws", "2", "--out", blend],
+                      user_dir=tmp_path / "blender_user", timeout=180)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert json.loads(blend.with_suffix(".json").read_text())["takes"][0]["draw"] == out.draws[0]
+    assert words in proc.stderr and "turn" not in proc.stderr

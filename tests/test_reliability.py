@@ -74,6 +74,8 @@ GENERATE_CASES = [
     (["--variants", "2", "--best", "3"], "--best must be between"),
     (["--side-redraws", "9"], "--side-redraws must be between 0 and 8"),
     (["--side-redraws", "-1"], "--side-redraws must be between 0 and 8"),
+    (["--verb-redraws", "9"], "--verb-redraws must be between 0 and 8"),
+    (["--verb-redraws", "-1"], "--verb-redraws must be between 0 and 8"),
 ]
 
 
@@ -468,6 +470,8 @@ def test_evaluate_and_bench_refuse_negative_threads(tmp_path, capsys, argv):
 def test_evaluate_refuses_a_bad_side_redraws_count_before_any_work(tmp_path, capsys):
     refused(["evaluate", "t2m", "--data", "x", "--side-redraws", "9"], tmp_path, capsys,
             "--side-redraws must be between 0 and 8")
+    refused(["evaluate", "t2m", "--data", "x", "--verb-redraws", "9"], tmp_path, capsys,
+            "--verb-redraws must be between 0 and 8")
 
 
 def test_export_model_never_deletes_what_it_did_not_write(model, tmp_path, capsys):

@@ -96,7 +96,8 @@ def test_the_kept_text_model_is_fp16_generates_and_records_no_machine_path():
     assert pipe.verb_guide.scale == 8.0 and "## Verb guidance" in card
     assert set(pipe.verb_guide.verbs) == {"jump", "get_low", "on_ground", "crawl", "reach_floor", "inverted",
                                           "stand_up", "climb", "kick", "throw"}
-    kw = dict(seconds=2.0, seed=0, num_inference_steps=5, repair=False, side_redraws=0)
+    kw = dict(seconds=2.0, seed=0, num_inference_steps=5, repair=False, side_redraws=0, verb_redraws=0)
+    assert pipe.config.verb_redraws == 2 and "## Verb redraws" in card
     guided = pipe(["a person jumps", "a person waves"], **kw).joints
     pipe.verb_guide.scale = 0.0
     plain = pipe(["a person jumps", "a person waves"], **kw).joints

@@ -153,7 +153,8 @@ def finish_job(job, target: Target | None) -> tuple[str, str]:
     message = f"{', '.join(report.actions)}: {report.frames} frames at {report.fps:g} fps in {elapsed:.2f} s"
     first = job.result.takes[0] if job.result.takes else None
     if first is not None:
-        _, side_text = side_report(first.prompt, getattr(first.badges, "side", None), first.draw)
+        _, side_text = side_report(first.prompt, getattr(first.badges, "side", None), first.draw,
+                                   redrawn_for=first.redrawn_for)
         message += f"; {side_text}" if side_text else ""
         for seam in seam_lines(first.seams, [prompt for prompt, _ in first.segments or []]):
             message += f"; {seam}"

@@ -43,7 +43,8 @@ class Take:
     residuals: list | None = None  # [(constraint kind, metres, met)] for a directed take
     segments: list | None = None  # [(prompt, first frame)] of a take made from a prompt sequence
     seams: list | None = None  # [(segment, largest joint jerk m/s^3, within real motion's)] of a sequence's seams
-    draw: int = 0  # which z_T of its seed (0: the first; a later one when the side redraws drew it again)
+    draw: int = 0  # which z_T of its seed (0: the first; a later one when a side or verb redraw drew it again)
+    redrawn_for: str = ""  # the redraw that drew it again: "side", "verb", either + " missed", or "" (none)
 
     @property
     def frames(self) -> int:
@@ -135,8 +136,9 @@ def generate(pipe, request: GenerateRequest, callback=None, check_cancel=None) -
     constraints, sequence = request.extra.get("constraints"), request.extra.get("sequence")
     steps = None if request.draft else request.steps  # a Draft runs its own few steps
     options = {"draft": True} if request.draft else {}  # (pipelines without a Draft mode take no draft argument)
-    if request.extra.get("side_redraws") is not None:  # the batch's --side-redraws (else the model's config)
-        options["side_redraws"] = request.extra["side_redraws"]
+    for name in ("side_redraws", "verb_redraws"):  # the batch's --side-redraws, --verb-redraws (else the model's)
+        if request.extra.get(name) is not None:
+            options[name] = request.extra[name]
     if sequence:  # one motion from prompt segments (a batch job)
         out = pipe.sequence(sequence, seed=request.seed, num_inference_steps=steps, guidance_scale=guidance,
                             **options)
@@ -186,6 +188,7 @@ def generate(pipe, request: GenerateRequest, callback=None, check_cancel=None) -
             segments=list(zip([p for p, _ in sequence], out.timings["segments"])) if sequence else None,
             seams=out.seams[row] if getattr(out, "seams", None) else None,
             draw=int(out.draws[row]) if getattr(out, "draws", None) else 0,
+            redrawn_for=out.redrawn_for[row] if getattr(out, "redrawn_for", None) else "",
         )
         take.name = action_name(request.prompt, request.seed, take.variant, request.variants)
         takes.append(take)

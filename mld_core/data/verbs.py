@@ -24,6 +24,10 @@ VERB_PATTERNS = {
 }
 _COMPILED = {verb: re.compile(pattern) for verb, pattern in VERB_PATTERNS.items()}
 VERBS = tuple(VERB_PATTERNS)
+# verb -> what a take shows when it shows the verb, for the notes a user reads ("it does not show a jump").
+VERB_SHOWN = {"jump": "a jump", "get_low": "getting low (a squat, a sit, a crouch)", "on_ground": "lying on the ground",
+              "crawl": "a crawl", "reach_floor": "a reach down to the floor", "inverted": "the body upside down",
+              "stand_up": "standing up from the ground", "climb": "a climb", "kick": "a kick", "throw": "a throw"}
 
 
 def verbs_in(text: str) -> list[str]:

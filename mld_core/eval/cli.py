@@ -62,6 +62,9 @@ def register(groups) -> None:
     e.add_argument("--side-redraws", type=int, default=None, metavar="N",
                    help="draws of a take beyond its first when it misses the side its prompt names (default: the "
                         "model's config side_redraws; 0: the model alone, as before 2026-11-27)")
+    e.add_argument("--verb-redraws", type=int, default=None, metavar="N",
+                   help="draws of a take beyond its first when it does not show the checked verb its prompt names "
+                        "(default: the model's config verb_redraws; 0: the model alone)")
     e.add_argument("--batch-size", type=int, default=32, help="generation batch")
     e.add_argument("--action-prompt", default=None,
                    help="a2m with a text model: prompt template, {action} is replaced by the action's name "
@@ -168,7 +171,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     overrides["action_prompt"] = args.action_prompt
     settings = replace(settings, **{k: v for k, v in overrides.items() if v is not None},
                        split=args.split, seed=args.seed, batch_size=args.batch_size, vae_sample=not args.vae_mean,
-                       draft=args.draft, side_redraws=args.side_redraws)
+                       draft=args.draft, side_redraws=args.side_redraws, verb_redraws=args.verb_redraws)
     check_settings(settings, args.task, lambda field: SETTING_FLAGS.get(field, "--" + field.replace("_", "-")))
     if args.json:  # checked now: the results of a long run are not lost to an output that cannot be written
         check_outputs({"--json": Path(args.json)}, overwrite=True)

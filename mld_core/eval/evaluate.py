@@ -71,6 +71,7 @@ class EvalSettings:
     guidance_scale: float | None = None
     draft: bool = False  # sample with the model's Draft denoiser
     side_redraws: int | None = None  # None: the model's config side_redraws; 0: every take its seed's first draw
+    verb_redraws: int | None = None  # None: the model's config verb_redraws; 0: no take drawn again for its verb
     vae_sample: bool = True  # decode z ~ q(z|x) as MLD does; False: the posterior mean
     action_prompt: str = "a person does the {action} motion"  # a2m with a text model: the prompt per action
 
@@ -159,6 +160,8 @@ class PipelineGenerator:
             kw["draft"] = True
         if self.settings.side_redraws is not None:
             kw["side_redraws"] = self.settings.side_redraws
+        if self.settings.verb_redraws is not None:
+            kw["verb_redraws"] = self.settings.verb_redraws
         return kw
 
     def _call(self, prompts: list, frames: list[int], seeds: list[int], num_variants: int = 1, **kw):

@@ -10,6 +10,7 @@ interrupted run resumes):
   physical.json    research/side_accuracy.py on the Bandai folder (the README's physical-check command);
   t2m_merged.json  evaluate t2m on the merged folder with the merged evaluator (research/v4/evaluator);
   t2m_bandai.json  evaluate t2m on the Bandai folder with the bundled evaluator.
+Every measurement samples the model alone, without side or verb redraws (``--side-redraws 0 --verb-redraws 0``).
 Then prints each target, its value, its bar and whether it is met, and writes DIR/targets.json. BASE_DIR is the DIR of
 this command on the model the issue compares against (the bundled v3.8; only its physical.json is read, and
 research/v4/baseline_v38 keeps v3.8's): the Bandai pass rates and the turns are met when within noise of it (the 95%
@@ -46,13 +47,14 @@ def measurement_commands(model: str | None, bandai: Path, cmu: Path, merged: Pat
     """{json file name: the command that writes it} (coverage runs in this process)."""
     py, m = sys.executable, ["--model", model] if model else []
     t2m = [py, "-m", "mld_core", "evaluate", "t2m", *m, "--replications", "2", "--mm-texts", "0",
-           "--side-redraws", "0", "--threads", str(threads), "--no-progress"]
+           "--side-redraws", "0", "--verb-redraws", "0", "--threads", str(threads), "--no-progress"]
     return {
         "vocabulary.json": [py, str(ROOT / "scripts" / "vocabulary.py"), "--data", str(cmu), *m, "--seeds", str(seeds),
-                            "--threads", str(threads), "--json", str(out / "vocabulary.json")],
+                            "--verb-redraws", "0", "--threads", str(threads), "--json", str(out / "vocabulary.json")],
         "physical.json": [py, str(ROOT / "research" / "side_accuracy.py"), "--data", str(bandai), *m, "--clip-length",
                           "--prompts", "both", "--seeds", "4", "--max-clips", "16", "--valid-references",
-                          "--side-redraws", "0", "--threads", str(threads), "--json", str(out / "physical.json")],
+                          "--side-redraws", "0", "--verb-redraws", "0", "--threads", str(threads), "--json",
+                          str(out / "physical.json")],
         "t2m_merged.json": [*t2m, "--data", str(merged), "--evaluator", str(HERE / "evaluator"),
                             "--json", str(out / "t2m_merged.json")],
         "t2m_bandai.json": [*t2m, "--data", str(bandai), "--json", str(out / "t2m_bandai.json")],
