@@ -69,10 +69,9 @@ VERB_RETRY = {PANEL_RETRY: " (try another seed)", CLI_RETRY: "; try another --se
 def verb_note(prompt: str, draw: int, redrawn_for: str) -> str:
     """'' unless the verb redraws drew the take (``redrawn_for`` "verb" or "verb missed"); then why it is a later
     draw of its seed, or that no draw showed the verbs its prompt names."""
-    from mld_core.data.verbs import VERB_SHOWN
-    from mld_core.take_fixes.verb_redraw import asked_verbs
+    from mld_core.data.verbs import VERB_SHOWN, verbs_in_order
 
-    verbs = asked_verbs(prompt) if redrawn_for in ("verb", "verb missed") else []
+    verbs = verbs_in_order(prompt) if redrawn_for in ("verb", "verb missed") else []
     if not verbs:
         return ""
     asked = " and ".join(VERB_SHOWN[v] for v in verbs)

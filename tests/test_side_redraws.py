@@ -109,15 +109,16 @@ def test_ranking_and_the_best_cut_keep_each_rows_draw(pipe, monkeypatch):
     assert take_report.keep_best(out, 2, 1).draws == [1]
 
 
-def test_the_config_bounds_side_redraws():
+@pytest.mark.parametrize("name, default", [("side_redraws", 2), ("verb_redraws", 0)])
+def test_the_config_bounds_the_redraws(name, default):
     for bad in (-1, 9, 1.5, True, "2"):
         config = tiny_config()
-        config.side_redraws = bad
-        with pytest.raises(ValueError, match="side_redraws"):
+        setattr(config, name, bad)
+        with pytest.raises(ValueError, match=name):
             check_config(config)
     config = tiny_config()
     check_config(config)
-    assert config.side_redraws == 2 and json.loads(json.dumps(config.to_dict()))["side_redraws"] == 2
+    assert getattr(config, name) == default and json.loads(json.dumps(config.to_dict()))[name] == default
 
 
 def test_the_pipeline_refuses_a_bad_count(pipe):

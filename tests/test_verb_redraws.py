@@ -16,7 +16,8 @@ from mld_core.checkpoint import check_config
 from mld_core.eval import physical, quality
 from mld_core.inputs import InputError
 from mld_core.take_fixes.order import Takes, fixes_for
-from mld_core.take_fixes.verb_redraw import VerbRedraw, asked_verbs, judge_verb
+from mld_core.data.verbs import verbs_in_order
+from mld_core.take_fixes.verb_redraw import VerbRedraw, judge_verb
 from mld_core.testing import tiny_config, tiny_pipeline
 
 JUMP = "a person jumps over a puddle"
@@ -48,9 +49,9 @@ def _shown_by_draw(monkeypatch, draws, shown):
 
 
 def test_a_take_is_judged_by_every_verb_its_prompt_names(monkeypatch):
-    assert asked_verbs(JUMP) == ["jump"]
-    assert asked_verbs("a person lies on his side and stands up") == ["on_ground", "stand_up"]
-    assert asked_verbs("a person walks forward") == []
+    assert verbs_in_order(JUMP) == ["jump"]
+    assert verbs_in_order("a person lies on his side and stands up") == ["on_ground", "stand_up"]
+    assert verbs_in_order("a person walks forward") == []
     assert judge_verb("a person walks forward", np.zeros((4, 22, 3)), 20.0) == ((0, 2), True)
     monkeypatch.setattr(physical, "shows", lambda joints, verb, fps=20.0: verb == "stand_up")
     assert judge_verb("a person lies on his side and stands up", np.zeros((4, 22, 3)), 20.0) == ((1, 2), False)
@@ -148,18 +149,16 @@ def test_verb_redraws_come_after_the_side_redraws_and_skip_their_draws():
                                                                                                      "Repair"]
 
 
-def test_the_config_and_the_call_bound_verb_redraws(pipe):
-    for bad in (-1, 9, 1.5, True, "2"):
-        config = tiny_config()
-        config.verb_redraws = bad
-        with pytest.raises(ValueError, match="verb_redraws"):
-            check_config(config)
-    config = tiny_config()
+def test_the_call_bounds_verb_redraws_and_the_config_keeps_them(pipe):
+    config = tiny_config()  # the config's bounds: tests/test_side_redraws.py, with the side redraws'
     config.verb_redraws = 2
     check_config(config)
     assert json.loads(json.dumps(config.to_dict()))["verb_redraws"] == 2
-    with pytest.raises(InputError, match="verb_redraws must be between 0 and 8"):
-        pipe(JUMP, 2.0, verb_redraws=9)
+    for bad in (9, -1):
+        with pytest.raises(InputError, match="verb_redraws must be between 0 and 8"):
+            pipe(JUMP, 2.0, verb_redraws=bad)
+    with pytest.raises(InputError, match="verb_redraws"):
+        pipe(JUMP, 2.0, verb_redraws=True)
 
 
 def test_the_side_note_is_not_given_for_a_take_its_verb_drew_again():

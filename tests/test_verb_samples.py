@@ -107,5 +107,46 @@ def test_a_folder_that_is_not_prepared_is_one_line(samples, tmp_path, capsys):
     assert capsys.readouterr().err.strip() == f"error: {tmp_path} is not a prepared folder (no train.txt)"
 
 
+def test_bad_arguments_are_one_line_and_write_nothing(samples, tmp_path, capsys):
+    data = _folder(tmp_path / "data")
+    before = sorted(p.relative_to(data) for p in data.rglob("*"))
+    (tmp_path / "a_file").write_text("x")
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "mine.txt").write_text("keep")
+    model = tiny_model(tmp_path / "model")
+    cases = [(["--out", str(data)], "is, holds or sits in --data"),
+             (["--out", str(data / "samples")], "is, holds or sits in --data"),
+             (["--out", str(tmp_path)], "is, holds or sits in --data"),
+             (["--out", str(tmp_path / "a_file")], "is a file"),
+             (["--out", str(tmp_path / "other")], "not an earlier run of this script"),
+             (["--per-verb", "0"], "--per-verb must be between 1"),
+             (["--batch", "0"], "--batch must be between 1"),
+             (["--verb-redraws", "9"], "--verb-redraws must be between 0 and 8"),
+             (["--minutes", "nan"], "--minutes must be a positive number"),
+             (["--minutes", "-1"], "--minutes must be a positive number"),
+             (["--model", str(tmp_path / "no_model")], "")]
+    for extra, words in cases:
+        argv = ["--data", str(data), "--model", str(model), "--out", str(tmp_path / "new"), *extra]
+        assert samples.main(argv) == 2, extra
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("error: ") and words in err and "\n" not in err, (extra, err)
+    assert sorted(p.relative_to(data) for p in data.rglob("*")) == before
+    assert (tmp_path / "other" / "mine.txt").read_text() == "keep" and not (tmp_path / "new").exists()
+
+
+def test_a_second_run_on_the_same_folder_at_once_is_refused(samples, tmp_path, capsys):
+    import fcntl
+
+    data, out = _folder(tmp_path / "data"), tmp_path / "samples"
+    out.mkdir()
+    (out / samples.PROGRESS).touch()
+    with open(out / ".lock", "w") as held:  # another run holds the folder
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        argv = ["--data", str(data), "--model", str(tiny_model(tmp_path / "model")), "--out", str(out)]
+        assert samples.main(argv) == 2
+    assert "another run is writing" in capsys.readouterr().err
+    assert (out / samples.PROGRESS).read_text() == ""
+
+
 if __name__ == "__main__":
     sys.exit(pytest.main([__file__]))

@@ -17,7 +17,9 @@ A measurement tool, not a test: it asserts nothing.
 from __future__ import annotations
 
 import argparse
+import fcntl
 import json
+import math
 import shutil
 import sys
 import time
@@ -99,6 +101,7 @@ def start_folder(data: Path, out: Path) -> None:
     """The prepared folder's fixed parts: the statistics and licence of ``data``, empty splits, a README."""
     for sub in ("new_joint_vecs", "new_joints", "texts"):
         (out / sub).mkdir(parents=True, exist_ok=True)
+    (out / PROGRESS).touch()  # marks the folder as this script's from the start
     for name in ("Mean.npy", "Std.npy", "LICENSE"):
         if (data / name).is_file() and not (out / name).is_file():
             shutil.copy2(data / name, out / name)
@@ -137,6 +140,13 @@ def run(args) -> int:
     pipe = MLDPipeline.from_pretrained(args.model)
     classes = (read_actions(args.data) or {}).get("classes", list(VERBS))
     cands = candidates(args.data, measured_prompts(args.cmu))
+    args.out.mkdir(parents=True, exist_ok=True)
+    lock = open(args.out / ".lock", "w")
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)  # released when this process ends, however it ends
+    except BlockingIOError:
+        print(f"error: another run is writing {args.out}; wait for it or name another --out", file=sys.stderr)
+        return 2
     start_folder(args.data, args.out)
     done = read_progress(args.out)
     todo = plan(cands, done, args.per_verb)
@@ -187,10 +197,39 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)
+    error = problem(args)
+    if error is None:
+        from mld_core.checkpoint import CheckpointError
+
+        try:
+            return run(args)
+        except (CheckpointError, OSError, ValueError) as exc:  # a model folder that does not load, a full disk
+            error = str(exc)
+    print(f"error: {error}", file=sys.stderr)
+    return 2
+
+
+def problem(args) -> str | None:
+    """What is wrong with the arguments, in one line (None: nothing). ``--out`` is a new folder or an earlier run's,
+    never the data or inside it, so no run writes over a prepared folder."""
     if not (args.data / "train.txt").is_file():
-        print(f"error: {args.data} is not a prepared folder (no train.txt)", file=sys.stderr)
-        return 2
-    return run(args)
+        return f"{args.data} is not a prepared folder (no train.txt)"
+    for name, value, lo, hi in (("--per-verb", args.per_verb, 1, 100_000), ("--batch", args.batch, 1, 256),
+                                ("--threads", args.threads, 1, 1024), ("--verb-redraws", args.verb_redraws, 0, 8)):
+        if not lo <= value <= hi:
+            return f"{name} must be between {lo} and {hi}, got {value}"
+    if not (math.isfinite(args.minutes) and args.minutes > 0):
+        return f"--minutes must be a positive number, got {args.minutes}"
+    out = args.out.resolve()
+    for name, folder in (("--data", args.data), ("--cmu", args.cmu)):
+        if folder is not None and (out == folder.resolve() or folder.resolve() in out.parents
+                                   or out in folder.resolve().parents):
+            return f"--out {args.out} is, holds or sits in {name} {folder}; name a folder of its own"
+    if args.out.exists() and not args.out.is_dir():
+        return f"--out {args.out} is a file; name a folder"
+    if args.out.is_dir() and any(args.out.iterdir()) and not (args.out / PROGRESS).is_file():
+        return f"--out {args.out} holds something that is not an earlier run of this script; name a new folder"
+    return None
 
 
 if __name__ == "__main__":
