@@ -312,7 +312,7 @@ def _check_draft(draft: DraftConfig, scheduler: SchedulerConfig) -> None:
 
 
 def _check_repair(repair: RepairConfig) -> None:
-    for name in ("bone_lengths", "plant_feet", "lock_feet"):
+    for name in ("bone_lengths", "plant_feet", "lock_feet", "on_floor"):
         if not isinstance(getattr(repair, name), bool):
             raise ValueError(f"repair.{name} must be true or false, got {getattr(repair, name)!r}")
     for name in ("contact_height_m", "model_weight", "smooth_frames", "max_correction_m",

@@ -62,8 +62,8 @@ def redrawn_note(prompt: str, draw: int, side: str | None = "named") -> str:
 
 PANEL_RETRY = " (try another seed, or more variants)"  # the add-on's report and the batch
 CLI_RETRY = "; try another --seed, or --variants 4 --best 1 (ranking puts such takes last)"
-# what to try when no draw showed the prompt's verbs (ranking does not judge verbs)
-VERB_RETRY = {PANEL_RETRY: " (try another seed)", CLI_RETRY: "; try another --seed, or more --verb-redraws"}
+# what generate says to try when no draw showed the prompt's verbs (ranking puts takes that miss them last too)
+CLI_VERB_RETRY = "; try another --seed, more --verb-redraws, or --variants 4 --best 1 (ranking puts such takes last)"
 
 
 def verb_note(prompt: str, draw: int, redrawn_for: str) -> str:
@@ -91,8 +91,10 @@ def side_report(prompt: str, side: str | None, draw: int, retry: str = PANEL_RET
     if note:
         return "warning", note + retry
     verb = verb_note(prompt, draw, redrawn_for or "")
+    if verb and redrawn_for == "verb missed":
+        return "warning", verb + (CLI_VERB_RETRY if retry == CLI_RETRY else retry)
     if verb:
-        return ("warning", verb + VERB_RETRY.get(retry, retry)) if redrawn_for == "verb missed" else ("note", verb)
+        return "note", verb
     note = redrawn_note(prompt, draw, side) if not (redrawn_for or "").startswith("verb") else ""
     return ("note", note) if note else ("", "")
 
@@ -139,7 +141,8 @@ def take_record(coverage: Coverage | None, badges: Badges | None) -> dict:
 
 
 BADGE_PROPERTIES = {"adherence": "adherence", "similarity": "similarity", "skating": "skating",
-                    "float": "foot_float", "penetration_cm": "penetration_cm", "jitter": "jitter", "side": "side"}
+                    "float": "foot_float", "penetration_cm": "penetration_cm", "jitter": "jitter", "side": "side",
+                    "verb": "verb"}
 
 
 def custom_properties(coverage: Coverage | None, badges: Badges | None, prefix: str = "mld_") -> dict:

@@ -15,7 +15,11 @@ DIR is a folder written by ``python -m mld_core data prepare cmu-joints``. The t
 Each prompt is generated with ``--seeds`` seeds (seeds 0..N-1) at ``--seconds``. The real rate is the check's pass
 rate on the real test windows of that verb (``--split``'s instead; all splits when it has fewer than 8). Prints one
 row per verb and wording: takes, pass rate, the real rate and their ratio (the target is >= 0.8); ``--json`` writes
-every take's prompt, seed, pass and draw. ``--verb-redraws`` (default: the model's config ``verb_redraws``) draws a
+every take's prompt, seed, pass, draw, lowest joint and foot float. The ``low cm`` column is the median over the
+row's takes of each take's lowest joint height, in cm (every prepared clip has its lowest joint on the floor, 0: below
+0 the take sinks into the floor, above it hovers all take long); ``float`` the mean of their foot float badge (the
+share of frames with no toe on the floor outside jumps: ``mld_core.eval.quality.foot_float``); each followed by the
+real windows' figure. ``--verb-redraws`` (default: the model's config ``verb_redraws``) draws a
 take that misses its prompt's verb again: 0 measures the model alone, as v4's targets do; the model's own count
 measures what a user gets, with the share of takes drawn again and the seconds spent on it. ``--vae-recon`` generates nothing: it passes the real windows through the
 model's VAE and prints each verb's pass rate before and after (the ceiling a denoiser on that VAE can reach; a
@@ -42,6 +46,7 @@ from mld_core.data.cmu_joints import whole_trial_windows  # noqa: E402
 from mld_core.data.dataset import read_captions, split_ids  # noqa: E402
 from mld_core.data.verbs import VERBS, verbs_in  # noqa: E402
 from mld_core.eval import physical  # noqa: E402
+from mld_core.eval.quality import foot_float  # noqa: E402
 from mld_core.inputs import MAX_VERB_REDRAWS  # noqa: E402
 
 COMMANDS = {"jump": "jump", "get_low": "squat down", "on_ground": "lie down on the floor", "crawl": "crawl",
@@ -101,6 +106,19 @@ def vae_recon_results(pipe, data: Path, wins: list[tuple[str, list[str]]], verb:
 
 def real_results(data: Path, wins: list[tuple[str, list[str]]], verb: str) -> list[tuple[bool, float]]:
     return [physical.verb_result(np.load(data / "new_joints" / f"{cid}.npy"), verb) for cid, _ in wins]
+
+
+def lowest_cm(joints) -> float:
+    """The lowest joint's height over a take (T, 22, 3), in cm: 0 on the floor, below it sunk in, above it hovering."""
+    return 100.0 * float(np.asarray(joints)[..., 1].min())
+
+
+def real_floor(data: Path, wins: list[tuple[str, list[str]]]) -> tuple[float, float]:
+    """The real windows' median lowest joint (cm) and mean foot float (nan for none)."""
+    joints = [np.load(data / "new_joints" / f"{cid}.npy") for cid, _ in wins]
+    if not joints:
+        return float("nan"), float("nan")
+    return float(np.median([lowest_cm(j) for j in joints])), float(np.mean([foot_float(j) for j in joints]))
 
 
 def rate_and_median(results: list[tuple[bool, float]]) -> tuple[float, float]:
@@ -172,30 +190,39 @@ def main(argv=None) -> int:
     redraws = pipe.config.verb_redraws if args.verb_redraws is None else args.verb_redraws
     print(f"model {pipe.model_id}; {args.seeds} seeds x {args.seconds:g} s" + (" (action labels)" if by_action else "")
           + (f"; verb redraws {redraws}" if redraws and not by_action else ""))
-    print(f"{'verb':12} {'wording':15} {'takes':>5} {'pass':>6} {'real':>6} {'ratio':>6}")
+    print(f"{'verb':12} {'wording':15} {'takes':>5} {'pass':>6} {'real':>6} {'ratio':>6} {'low cm':>7} {'real':>5} "
+          f"{'float':>5} {'real':>5}")
     for verb in verbs:
         wordings, real_wins = prompts_for(args.data, verb, whole, args.captions, args.split)
         if by_action:
             wordings = {"action": [verb]}
         real = rate_and_median(real_results(args.data, real_wins, verb))[0]
+        real_low, real_float = real_floor(args.data, real_wins)
         for wording, prompts in wordings.items():
-            passed = []
+            passed, lows, floats = [], [], []
             for prompt in prompts:
                 actions = {"actions": [prompt]} if by_action else {}
                 out = pipe([prompt], seconds=args.seconds, seed=0, num_variants=args.seeds, verb_redraws=redraws,
                            **actions)
                 redraw_s += out.timings.get("verb_redraws_s", 0.0)
                 for v in range(len(out.joints)):
-                    ok = physical.shows(out.joints[v, : out.lengths[v]], verb)
+                    joints = out.joints[v, : out.lengths[v]]
+                    ok = physical.shows(joints, verb)
                     passed.append(ok)
+                    lows.append(lowest_cm(joints))
+                    floats.append(foot_float(joints, out.fps))
                     draw = int(out.draws[v]) if out.draws else 0
                     takes.append({"verb": verb, "wording": wording, "prompt": prompt, "seed": v, "pass": bool(ok),
-                                  "draw": draw})
+                                  "draw": draw, "lowest_cm": round(lows[-1], 2), "float": round(floats[-1], 4)})
             rate = float(np.mean(passed)) if passed else float("nan")
             ratio = rate / real if real > 0 else float("nan")
+            low = float(np.median(lows)) if lows else float("nan")
+            flt = float(np.mean(floats)) if floats else float("nan")
             rows.append({"verb": verb, "wording": wording, "prompts": prompts, "takes": len(passed), "pass": rate,
-                         "real": real, "real_windows": len(real_wins), "ratio": ratio})
-            print(f"{verb:12} {wording:15} {len(passed):5d} {rate:6.2f} {real:6.2f} {ratio:6.2f}", flush=True)
+                         "real": real, "real_windows": len(real_wins), "ratio": ratio, "lowest_cm": low,
+                         "real_lowest_cm": real_low, "float": flt, "real_float": real_float})
+            print(f"{verb:12} {wording:15} {len(passed):5d} {rate:6.2f} {real:6.2f} {ratio:6.2f} {low:7.1f} "
+                  f"{real_low:5.1f} {flt:5.2f} {real_float:5.2f}", flush=True)
     redrawn = float(np.mean([t["draw"] > 0 for t in takes])) if takes else 0.0
     print(f"{len(takes)} takes in {time.perf_counter() - start:.0f} s"
           + (f"; {redrawn:.2f} of them a later draw, {redraw_s:.0f} s spent drawing again" if redraws else ""))

@@ -378,6 +378,43 @@ def test_the_vocabulary_benchmark_measures_with_the_verb_redraws_it_is_given(cli
     assert capsys.readouterr().err.strip() == "error: --verb-redraws must be between 0 and 8, got 9"
 
 
+def test_the_vocabulary_benchmark_reports_how_far_takes_sink_or_hover(clips, tmp_path, capsys, monkeypatch):
+    """scripts/vocabulary.py: each take's lowest joint (cm) and each row's median, beside the real windows' median;
+    a model whose repair puts takes on the floor has every take's lowest joint at 0."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "scripts"))
+    import vocabulary
+
+    from mld_core.data.dataset import split_ids
+    from mld_core.testing import tiny_model
+
+    out = tmp_path / "data"
+    assert prepare(source(tmp_path / "cmu", clips), out, capsys)[0] == 0
+    model = tiny_model(tmp_path / "text")
+    argv = ["--data", str(out), "--model", str(model), "--seeds", "3", "--seconds", "2", "--threads", "1",
+            "--verbs", "jump", "--json", str(tmp_path / "v.json")]
+    lows = {}
+    for on_floor in (False, True):
+        config = json.loads((model / "config.json").read_text())
+        config["repair"]["on_floor"] = on_floor
+        (model / "config.json").write_text(json.dumps(config))
+        assert vocabulary.main(argv) == 0
+        report = json.loads((tmp_path / "v.json").read_text())
+        lows[on_floor] = [t["lowest_cm"] for t in report["takes"]]
+        for row in (r for r in report["rows"] if r["takes"]):
+            mine = [t["lowest_cm"] for t in report["takes"] if t["wording"] == row["wording"]]
+            assert row["lowest_cm"] == pytest.approx(np.median(mine), abs=0.01)
+            floats = [t["float"] for t in report["takes"] if t["wording"] == row["wording"]]
+            assert row["float"] == pytest.approx(np.mean(floats), abs=1e-3) and 0.0 <= row["float"] <= 1.0
+            assert np.isfinite(row["real_lowest_cm"]) == (row["real_windows"] > 0)
+    assert lows[True] == pytest.approx([0.0] * len(lows[True]), abs=0.01)
+    assert max(abs(v) for v in lows[False]) > 1.0  # the tiny model's noise is nowhere near the floor
+    assert "low cm" in capsys.readouterr().out
+    real = [(cid, []) for cid in split_ids(out, "all")]  # the prepared clips: each one's lowest joint on the floor
+    low, flt = vocabulary.real_floor(out, real)
+    assert low == pytest.approx(0.0, abs=0.01) and 0.0 <= flt <= 1.0
+    assert all(np.isnan(vocabulary.real_floor(out, [])))
+
+
 def test_the_vocabulary_benchmark_reads_real_windows_through_a_vae(clips, tmp_path, capsys, monkeypatch):
     """scripts/vocabulary.py --vae-recon: per verb, the real windows' pass rate and median check value, before and
     after the model's VAE (the ceiling of a denoiser on it); a VAE-only folder is enough."""

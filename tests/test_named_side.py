@@ -83,7 +83,7 @@ def test_takes_on_the_opposite_side_rank_last_whatever_their_score():
     assert quality.best_first(b[:1] + [_badges(90, "opposite")], [5, 4]) == [1, 0]  # among them: score, then seed
     assert b[0].as_dict()["side"] == "opposite" and b[3].as_dict()["side"] is None
     table = quality.format_table([7, 8], b[:2]).splitlines()
-    assert table[0].split()[-1] == "side" and table[1].split()[-1] == "opposite" and table[2].split()[-1] == "neither"
+    assert table[0].split()[-2] == "side" and table[1].split()[-2] == "opposite" and table[2].split()[-2] == "neither"
 
 
 def test_the_scorer_gives_the_side_badge_from_each_prompt(turn_left_clip):

@@ -626,3 +626,36 @@ def test_shows_knows_its_verbs(rest):
         P.shows(still(rest), "juggle")
     with pytest.raises(ValueError, match="no physical check for the verb"):
         P.verb_result(still(rest), "juggle")
+
+
+def test_the_verb_badge_says_whether_a_take_shows_every_verb_its_prompt_names(rest):
+    from blender_addon.worker.coverage_watch import badge_lines
+    from mld_core import take_report
+    from mld_core.eval import quality
+
+    sit = lowered(rest, 0.3 * ramp(4 * FPS, (0.5, 1.0), (2.5, 3.0)))  # gets low, then stands up
+    squat = "a person squats down and stands back up"  # names get_low and stand_up
+    scorer = quality.QualityScorer(None, {"jerk_mean": 1.0})  # physical badges only
+    badges = scorer.score([squat, squat, "a person squats down", "a person waves"], [sit, still(rest), sit, sit])
+    assert [b.verb for b in badges] == ["shown", "missed", "shown", None]
+    assert [b.verb for b in scorer.score(None, [sit])] == [None]  # no prompt (actions, unconditional)
+    assert quality.verb_badge("someone jumps and squats", sit) == "missed"  # every verb named, not one of them
+    props = take_report.custom_properties(None, badges[1])
+    assert props["mld_verb"] == "missed" and "mld_verb" not in take_report.custom_properties(None, badges[3])
+    assert ("Verb: missed", "the jump, crawl, kick, ... the prompt names: all shown by their checks, or missed") \
+        in badge_lines(props)
+    assert take_report.take_record(None, badges[0])["badges"]["verb"] == "shown"
+    table = quality.format_table([1, 2, 3], badges[:3]).splitlines()
+    assert [line.split()[-1] for line in table] == ["verb", "shown", "missed", "shown"]
+
+
+def test_takes_that_miss_their_verbs_rank_after_all_others_even_opposite_ones():
+    from mld_core.eval import quality
+
+    def badges(adherence, side=None, verb=None):
+        return quality.Badges(adherence, None, 0.0, 0.0, 0.0, 1.0, side, verb)
+
+    b = [badges(95, verb="missed"), badges(20, "named", "shown"), badges(90, "opposite", "shown"), badges(50)]
+    assert quality.rank_score(b[0]) == quality.rank_score(badges(95))  # the score itself is unchanged
+    assert quality.best_first(b, [0, 1, 2, 3]) == [3, 1, 2, 0]
+    assert quality.best_first([b[0], badges(95, verb="missed")], [5, 4]) == [1, 0]  # among them: score, then seed

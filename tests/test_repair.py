@@ -14,8 +14,8 @@ from mld_core.motion import skeleton as sk
 from mld_core.motion.features import FOOT_CONTACT, RIC, features_to_joints, joints_to_features
 from mld_core.rig.fidelity import knee_bend_deg
 from mld_core.take_fixes.repair import (RepairConfig, double_support_share, features_with_bone_lengths,
-                                        foot_hold_shifts, lock_feet, plant_feet, repair_features, repair_rows,
-                                        two_bone_ik)
+                                        foot_hold_shifts, lock_feet, plant_feet, put_on_floor, repair_features,
+                                        repair_rows, two_bone_ik)
 from mld_core.testing import tiny_model
 
 WALK = "dataset-2_walk-turn-left_normal_027"
@@ -103,6 +103,24 @@ def test_repair_applies_the_switches_in_order(walk):
     np.testing.assert_allclose(every, lock_feet(plant_feet(features_with_bone_lengths(slid))))
 
 
+@pytest.mark.parametrize("offset_m", [0.2, -0.15])
+def test_a_hovering_or_sunken_take_is_put_on_the_floor_and_nothing_else_moves(walk, offset_m):
+    moved = walk.copy()
+    moved[:, 3] += offset_m  # the root's height and every joint's (RIC keeps heights in world units)
+    moved[:, RIC.start + 1:RIC.stop:3] += offset_m
+    before, after = features_to_joints(moved), features_to_joints(put_on_floor(moved))
+    assert before[..., 1].min() == pytest.approx(features_to_joints(walk)[..., 1].min() + offset_m)
+    assert after[..., 1].min() == pytest.approx(0.0, abs=1e-9)  # the lowest joint over the take, on the floor
+    np.testing.assert_allclose(after - before, np.broadcast_to([0.0, -before[..., 1].min(), 0.0], before.shape),
+                               atol=1e-9)  # the whole take moves as one, straight up or down
+    np.testing.assert_array_equal(put_on_floor(moved)[:, 67:], moved[:, 67:])  # rotations, velocities, contacts
+    off = RepairConfig(bone_lengths=False, plant_feet=False, lock_feet=False)
+    np.testing.assert_array_equal(repair_features(moved, off), moved)
+    np.testing.assert_allclose(repair_features(moved, RepairConfig(on_floor=True)),
+                               put_on_floor(repair_features(moved)))  # last, after the other repairs
+    assert not RepairConfig().on_floor  # off unless a model's config turns it on
+
+
 def test_pipeline_repairs_free_takes_only_when_asked(tmp_path):
     from mld_core.pipeline import MLDPipeline
 
@@ -121,7 +139,8 @@ def test_pipeline_repairs_free_takes_only_when_asked(tmp_path):
 
 @pytest.mark.parametrize("repair, words", [("on", "JSON object"), ({"plant_feet": "yes"}, "true or false"),
                                            ({"smooth_frames": -1}, ">= 0"), ({"feet": True}, "feet"),
-                                           ({"lock_feet": 1}, "true or false"), ({"lock_release": 1.5}, "between 0 and 1"),
+                                           ({"lock_feet": 1}, "true or false"), ({"on_floor": "yes"}, "true or false"),
+                                           ({"lock_release": 1.5}, "between 0 and 1"),
                                            ({"lock_min_knee_deg": 95}, "below 90"),
                                            ({"lock_max_double_support": 2}, "between 0 and 1"),
                                            ({"max_lock_shift_m": float("nan")}, ">= 0")])

@@ -14,7 +14,7 @@ import torch
 from mld_core.cli import main
 from mld_core.motion.features import joints_to_features, mean_std
 from mld_core.pipeline import MLDPipeline
-from mld_core.training.common import Budget, lr_factor
+from mld_core.training.common import Budget, boosted_weights, lr_factor
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -936,7 +936,7 @@ def test_denoiser_fine_tune_grows_onto_a_grown_vae_and_generates(tmp_path):
 
 
 def test_label_boost_multiplies_a_labels_sampling_share_and_refuses_a_label_no_clip_has(folder, tmp_path, capsys):
-    from mld_core.training.vae import VAETrainConfig, boosted_weights
+    from mld_core.training.vae import VAETrainConfig
 
     labels = ["walk"] * 8 + ["kick"] * 2
     plain = boosted_weights(labels, 0.5, None)
@@ -960,6 +960,33 @@ def test_label_boost_multiplies_a_labels_sampling_share_and_refuses_a_label_no_c
     capsys.readouterr()
     assert main(["train", "vae", "--data", str(folder), "--out", str(tmp_path / "bad"), "--steps", "1",
                  "--config", str(cfg)]) == 2
+    assert "no train clip is labelled 'c' (labels: a, b)" in capsys.readouterr().err
+
+
+def test_a_denoiser_draws_its_boosted_labels_more_often_and_refuses_a_label_no_clip_has(folder, tmp_path, capsys,
+                                                                                          monkeypatch):
+    """train denoiser's label_boost, as the VAE's: the sampling weights it trains with are boosted_weights' of the
+    train units' labels, recorded in the run's provenance; a label no clip has is one line, exit 2, no run written."""
+    from mld_core.training import denoiser
+
+    vae_run = tmp_path / "vae"
+    assert main(["train", "vae", "--data", str(folder), "--out", str(vae_run), "--steps", "2", "--threads", "1",
+                 "--config", json.dumps(TINY_VAE)]) == 0
+    used = []
+
+    def spy(labels, power, boost):
+        used.append((sorted(set(labels)), boost))
+        return boosted_weights(labels, power, boost)
+
+    monkeypatch.setattr(denoiser, "boosted_weights", spy)
+    args = ["train", "denoiser", "--data", str(folder), "--vae", str(vae_run), "--steps", "2", "--threads", "1"]
+    run = tmp_path / "den"
+    assert main(args + ["--out", str(run), "--config", json.dumps({**TINY_DEN, "label_boost": {"b": 4}})]) == 0
+    assert used == [(["a", "b"], {"b": 4.0})]
+    assert json.loads((run / "config.json").read_text())["provenance"]["denoiser_training"]["label_boost"] == {"b": 4.0}
+    capsys.readouterr()
+    bad = tmp_path / "bad"
+    assert main(args + ["--out", str(bad), "--config", json.dumps({**TINY_DEN, "label_boost": {"c": 4}})]) == 2
     assert "no train clip is labelled 'c' (labels: a, b)" in capsys.readouterr().err
 
 

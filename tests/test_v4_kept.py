@@ -98,6 +98,9 @@ def test_the_kept_text_model_is_fp16_generates_and_records_no_machine_path():
                                           "stand_up", "climb", "kick", "throw"}
     kw = dict(seconds=2.0, seed=0, num_inference_steps=5, repair=False, side_redraws=0, verb_redraws=0)
     assert pipe.config.verb_redraws == 2 and "## Verb redraws" in card
+    assert pipe.config.repair.on_floor and "## On the floor" in card
+    floored = pipe(["a person crawls on hands and knees"], seconds=2.0, seed=0, num_inference_steps=5)
+    assert floored.joints[0, : floored.lengths[0], :, 1].min() == pytest.approx(0.0, abs=1e-5)
     guided = pipe(["a person jumps", "a person waves"], **kw).joints
     pipe.verb_guide.scale = 0.0
     plain = pipe(["a person jumps", "a person waves"], **kw).joints

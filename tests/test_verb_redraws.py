@@ -77,9 +77,9 @@ def test_when_no_draw_shows_the_verb_the_first_stays_and_the_user_is_warned(pipe
     np.testing.assert_array_equal(out.joints[0], draws[0])
     [line] = take_report.side_lines(out)
     assert line == ("warning: take 0 (seed 9): no draw of its seed showed a jump as the prompt says; try another "
-                    "--seed, or more --verb-redraws")
+                    "--seed, more --verb-redraws, or --variants 4 --best 1 (ranking puts such takes last)")
     assert take_report.side_report(JUMP, None, 0, redrawn_for="verb missed") == (
-        "warning", "no draw of its seed showed a jump as the prompt says (try another seed)")  # the panel's words
+        "warning", "no draw of its seed showed a jump as the prompt says (try another seed, or more variants)")
 
 
 def test_no_verb_redraw_by_default_when_off_for_a_prompt_naming_no_verb_or_a_directed_take(pipe, monkeypatch):
@@ -168,3 +168,14 @@ def test_the_side_note_is_not_given_for_a_take_its_verb_drew_again():
     assert "turn left" in take_report.side_report(turn_jump, "named", 1, redrawn_for="side")[1]
     assert "turn left" in take_report.side_report(turn_jump, "named", 1)[1]  # not known: as before, the side's
     assert take_report.side_report(turn_jump, "opposite", 3, redrawn_for="verb")[0] == "warning"  # side first
+
+
+def test_ranked_variants_put_a_take_that_misses_its_verb_last_and_the_user_sees_it(pipe, monkeypatch):
+    alone = {seed: pipe(JUMP, 2.0, seed=seed, side_redraws=0, verb_redraws=0).joints[0] for seed in (5, 6)}
+    for missed, kept in ((5, 6), (6, 5)):  # whichever the score puts first, the take that misses the jump goes last
+        monkeypatch.setattr(physical, "shows", lambda joints, verb, fps=20.0, result=None, m=alone[missed]:
+                            not np.allclose(m[: len(joints)], joints, atol=1e-4))
+        ranked = pipe(JUMP, 2.0, seed=5, num_variants=2, rank=True, verb_redraws=0)
+        assert ranked.seeds == [kept, missed] and [b.verb for b in ranked.badges] == ["shown", "missed"]
+        assert take_report.keep_best(ranked, 2, 1).seeds == [kept]
+        assert take_report.badge_table(ranked).splitlines()[3].split()[-1] == "missed"

@@ -26,6 +26,7 @@ BADGE_LINES = (
     ("mld_penetration_cm", "Penetration", "{:.1f} cm", "deepest joint below the floor (real: 0)"),
     ("mld_jitter", "Jitter", "{:.2f}", "jerk relative to motion capture (real: 1)"),
     ("mld_side", "Side", "{}", "the side the prompt names: used (named), only the other (opposite), or neither"),
+    ("mld_verb", "Verb", "{}", "the jump, crawl, kick, ... the prompt names: all shown by their checks, or missed"),
 )
 
 

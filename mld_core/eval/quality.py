@@ -18,9 +18,12 @@ pipeline's output have it), at ``fps`` frames per second, with plain numpy:
   its own caption).
 - ``side`` (:func:`side_badge`): for a prompt that names one side for a turn, a drift, a wave or a raised hand,
   whether the take used it ("named"), only the other side ("opposite"), or neither (``mld_core.eval.named_side``).
+- ``verb`` (:func:`verb_badge`): for a prompt that names checked verbs (jump, crawl, kick, ...:
+  ``mld_core.data.verbs``), whether the take shows them all by their physical checks ("shown") or not ("missed").
 
 :func:`rank_score` combines the numbers (documented in docs/quality.md); :func:`best_first` orders variants by it,
-deterministically (ties: the lower seed first), with takes that used the opposite side last.
+deterministically (ties: the lower seed first), with takes that used the opposite side after the others and takes
+that miss the prompt's verbs last.
 ``python scripts/quality_table.py`` measures every badge on the real test clips and on generated ones, and writes the
 reference file.
 """
@@ -34,6 +37,7 @@ from typing import Sequence
 
 import numpy as np
 
+from mld_core.data.verbs import verbs_in_order
 from mld_core.eval import named_side, physical
 
 L_TOE, R_TOE, PELVIS = 10, 11, 0
@@ -152,6 +156,7 @@ class Badges:
     penetration_cm: float
     jitter: float
     side: str | None = None  # "named" / "opposite" / "neither" (mld_core.eval.named_side); None: no side asked
+    verb: str | None = None  # "shown" / "missed": every checked verb the prompt names shown or not; None: none named
 
     def as_dict(self) -> dict:
         return {k: (v if v is None or isinstance(v, str) else round(float(v), 4)) for k, v in asdict(self).items()}
@@ -177,8 +182,10 @@ def rank_score(b: Badges) -> float:
 
 def best_first(badges: Sequence[Badges], seeds: Sequence[int]) -> list[int]:
     """Indices of ``badges`` from the best rank_score down; equal scores keep the lower seed first. Takes that
-    used the side opposite the one the prompt names (side "opposite") come after all others, whatever their score."""
-    keys = [(b.side == "opposite", -round(rank_score(b), 9), int(s), i) for i, (b, s) in enumerate(zip(badges, seeds))]
+    used the side opposite the one the prompt names (side "opposite") come after all others, whatever their score,
+    and takes that do not show the checked verbs the prompt names (verb "missed") after those."""
+    keys = [(b.verb == "missed", b.side == "opposite", -round(rank_score(b), 9), int(s), i)
+            for i, (b, s) in enumerate(zip(badges, seeds))]
     return [key[-1] for key in sorted(keys)]
 
 
@@ -228,6 +235,7 @@ class QualityScorer:
         joints = [np.asarray(j) for j in joints]
         measured = [physical_badges(j, fps, self.reference.get("jerk_mean")) for j in joints]
         sides = [side_badge(p, j, fps) for p, j in zip(prompts, joints)] if prompts else [None] * len(joints)
+        verbs = [verb_badge(p, j, fps) for p, j in zip(prompts, joints)] if prompts else [None] * len(joints)
         sims = [None] * len(joints)
         pct = [None] * len(joints)
         if self.evaluator is not None and prompts and all(p for p in prompts):
@@ -238,13 +246,23 @@ class QualityScorer:
             sims = [float(s) for s in self.similarity(prompts, features)]
             quantiles = self.reference.get("similarity_percentiles")
             pct = [percentile(s, quantiles) if quantiles else None for s in sims]
-        return [Badges(a, s, **p, side=side) for a, s, p, side in zip(pct, sims, measured, sides)]
+        return [Badges(a, s, **p, side=side, verb=verb)
+                for a, s, p, side, verb in zip(pct, sims, measured, sides, verbs)]
 
 
 def side_badge(prompt: str | None, joints: np.ndarray, fps: float = 20.0) -> str | None:
     """"named" / "opposite" / "neither" for a prompt that names one side (mld_core.eval.named_side), else None."""
     ask = named_side.asked_side(prompt) if prompt else None
     return None if ask is None else named_side.side_used(ask, physical.classify(joints, fps))
+
+
+def verb_badge(prompt: str | None, joints: np.ndarray, fps: float = 20.0) -> str | None:
+    """"shown" when the take shows every checked verb the prompt names (mld_core.data.verbs) by its physical check,
+    "missed" when not, None when the prompt names none."""
+    verbs = verbs_in_order(prompt) if prompt else []
+    if not verbs:
+        return None
+    return "shown" if all(physical.shows(joints, verb, fps) for verb in verbs) else "missed"
 
 
 def rank_output(out, scorer: QualityScorer, num_variants: int, prompts: Sequence[str] | None = None):
@@ -266,9 +284,9 @@ def rank_output(out, scorer: QualityScorer, num_variants: int, prompts: Sequence
 def format_table(seeds: Sequence[int], badges: Sequence[Badges]) -> str:
     """The CLI's table: one row per take, in the given order."""
     lines = [f"{'seed':>6s} {'adherence':>9s} {'skating':>7s} {'float':>5s} {'penetr.':>7s} {'jitter':>6s} {'rank':>6s}"
-             f" {'side':>8s}"]
+             f" {'side':>8s} {'verb':>6s}"]
     for seed, b in zip(seeds, badges):
         adh = "-" if b.adherence is None else f"{b.adherence:.0f}"
         lines.append(f"{seed:6d} {adh:>9s} {b.skating:7.2f} {b.float:5.2f} {b.penetration_cm:5.1f}cm "
-                     f"{b.jitter:6.2f} {rank_score(b):6.2f} {b.side or '-':>8s}")
+                     f"{b.jitter:6.2f} {rank_score(b):6.2f} {b.side or '-':>8s} {b.verb or '-':>6s}")
     return "\n".join(lines)

@@ -12,6 +12,9 @@
   generated travel (runs, dashes, sidesteps). Takes whose feet hardly leave the floor are not locked.
 - :func:`keep_bone_lengths` rebuilds joints (T, 22, 3) with fixed bone lengths, keeping every bone's direction
   and the pelvis: the decoded joints otherwise stretch bones by 5-12 mm SD within a take.
+- :func:`put_on_floor` moves the whole take up or down so that its lowest joint over the take is on the floor
+  (y = 0), the convention every training clip was prepared with (HumanML3D's floor): a decoded take may otherwise
+  sink into the floor or hover above it all take long.
 """
 
 from __future__ import annotations
@@ -46,11 +49,12 @@ class RepairConfig:
     max_lock_shift_m: float = 0.25  # a foot is never held further than this from where it was generated
     lock_min_knee_deg: float = 5.0  # a foot is held only as far as the leg reaches with the knee bent this much
     lock_max_double_support: float = 0.7  # takes with both feet planted in more of their frames shuffle: not locked
+    on_floor: bool = False  # put_on_floor: the take's lowest joint on the floor (after the other repairs)
 
 
 def repair_features(features: np.ndarray, config: RepairConfig | None = None) -> np.ndarray:
     """One take's features (T, 263) with the repairs ``config`` turns on, in order: bone lengths, planted feet,
-    locked feet."""
+    locked feet, on the floor."""
     cfg = config or RepairConfig()
     out = np.asarray(features, dtype=np.float64)
     if cfg.bone_lengths:
@@ -59,13 +63,16 @@ def repair_features(features: np.ndarray, config: RepairConfig | None = None) ->
         out = plant_feet(out, cfg)
     if cfg.lock_feet:
         out = lock_feet(out, cfg)
+    if cfg.on_floor:
+        out = put_on_floor(out)
     return out.astype(np.asarray(features).dtype)
 
 
 def repair_rows(features: np.ndarray, lengths: list, config: RepairConfig) -> np.ndarray:
     """Each row's first ``lengths[i]`` frames of ``features`` (B, T, F) with the repairs of ``config`` applied (a copy;
     263-d features only)."""
-    if features.shape[-1] != 263 or not (config.bone_lengths or config.plant_feet or config.lock_feet):
+    if features.shape[-1] != 263 or not (config.bone_lengths or config.plant_feet or config.lock_feet
+                                         or config.on_floor):
         return features
     out = features.copy()
     for i, n in enumerate(lengths):
@@ -82,6 +89,17 @@ class Repair:
 
     def apply(self, takes, decoder):
         return replace(takes, features=repair_rows(takes.features, takes.lengths.tolist(), self.config))
+
+
+def put_on_floor(features: np.ndarray) -> np.ndarray:
+    """Features (T, 263) moved up or down as a whole so that the lowest joint over the take is at y = 0 (a copy):
+    the root height and every joint's height (RIC keeps heights in world units) shift alike."""
+    f = np.asarray(features, dtype=np.float64).copy()
+    heights = f[:, RIC][:, 1::3]  # (T, 21): joints 1..21; the root's is channel 3
+    floor = min(float(f[:, 3].min()), float(heights.min()))
+    f[:, 3] -= floor
+    f[:, RIC.start + 1:RIC.stop:3] -= floor
+    return f
 
 
 def _root_half_angle(features: np.ndarray) -> np.ndarray:

@@ -64,6 +64,28 @@ def balanced_weights(labels: list, power: float) -> np.ndarray:
     return w / w.sum()
 
 
+def checked_label_boost(boost) -> dict | None:
+    """``label_boost`` as {label: factor}, each factor a number from 0.01 to 1000."""
+    if boost is None:
+        return None
+    if not isinstance(boost, dict) or not boost:
+        raise inputs.InputError(f"label_boost must be a non-empty {{label: factor}} object, got {boost!r}")
+    return {str(label): inputs.number_in_range(f, f"label_boost[{label!r}]", 0.01, 1000.0) for label, f in boost.items()}
+
+
+def boosted_weights(labels: list, balance_power: float, boost: dict | None) -> np.ndarray:
+    """Sampling weights: content-balanced (balanced_weights), then the clips of each label in ``boost`` times
+    its factor; a boosted label no clip has is an error (a misspelt label would otherwise boost nothing)."""
+    weights = balanced_weights(labels, balance_power)
+    for label, factor in (boost or {}).items():
+        mine = np.array([l == label for l in labels])
+        if not mine.any():
+            raise inputs.InputError(f"label_boost: no train clip is labelled {label!r} "
+                                    f"(labels: {', '.join(sorted(set(labels)))})")
+        weights = np.where(mine, weights * factor, weights)
+    return weights / weights.sum()
+
+
 def checked_budget(steps, minutes, names: tuple[str, str] = ("steps", "minutes")) -> tuple[int | None, float | None]:
     """A run's --steps and --minutes checked (a whole number >= 1, a finite number > 0, or None) and as numbers;
     ``names`` name them in the messages."""

@@ -34,9 +34,9 @@ from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser, grow_latent
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import DDPMScheduler
 from mld_core.training import distributed
-from mld_core.training.common import (Budget, balanced_weights, check_resumed_modules, checked_budget,
-                                     checked_module_names, load_train_state, lr_factor, save_train_state, set_lr,
-                                     setup_torch, trainable_parameters)
+from mld_core.training.common import (Budget, boosted_weights, check_resumed_modules, checked_budget,
+                                     checked_label_boost, checked_module_names, load_train_state, lr_factor,
+                                     save_train_state, set_lr, setup_torch, trainable_parameters)
 from mld_core.training.vae import GROWTH_NOISE, prepare_run_dir
 
 LATENT_CACHE = "latents.safetensors"
@@ -59,6 +59,7 @@ class DenoiserTrainConfig:
     decay_start: float = 0.6  # cosine learning-rate decay over the last 40% of the budget (--steps/--minutes)
     crops_per_clip: int = 8
     balance_power: float = 0.7
+    label_boost: dict | None = None  # {label: factor}: that label's clips drawn factor times as often (after balance)
     save_every: int = 500
     guidance_scale: float = 4.0
     bf16: bool = False  # bfloat16 autocast for forward/backward (fp32 weights, optimiser and EMA)
@@ -91,6 +92,7 @@ class DenoiserTrainConfig:
         self.verb_hint_dropout = inputs.number_in_range(self.verb_hint_dropout, "verb_hint_dropout", 0.0, 1.0)
         self.verb_hint_lr_scale = inputs.number_in_range(self.verb_hint_lr_scale, "verb_hint_lr_scale", 0.0, 1000.0)
         self.train_modules = checked_module_names(self.train_modules)
+        self.label_boost = checked_label_boost(self.label_boost)
         if isinstance(self.denoiser, dict):
             self.denoiser = DenoiserConfig(**self.denoiser)
 
@@ -364,7 +366,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     step, extra = load_train_state(out, denoiser, opt) if resume else (0, {})
     if resume and (out / "denoiser.safetensors").is_file():
         load_weights(out / "denoiser.safetensors", ema)
-    weights = balanced_weights([units[u].label for u in unit_of.tolist()], cfg.balance_power)
+    weights = boosted_weights([units[u].label for u in unit_of.tolist()], cfg.balance_power, cfg.label_boost)
     scheduler = DDPMScheduler(base.scheduler)
     n_train = base.scheduler.num_train_timesteps
     unit_list = unit_of.tolist()

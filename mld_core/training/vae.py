@@ -26,9 +26,9 @@ from mld_core.models.vae import MotionVAE, VAEConfig, grow_latent
 from mld_core.motion import skeleton as sk
 from mld_core.motion.features import FOOT_CONTACT, ROOT_ROT_VEL, ROOT_Y, features_to_joints
 from mld_core.training import distributed
-from mld_core.training.common import (Budget, balanced_weights, check_resumed_modules, checked_budget,
-                                     checked_module_names, load_train_state, lr_factor, save_train_state, set_lr,
-                                     setup_torch, trainable_parameters)
+from mld_core.training.common import (Budget, boosted_weights, check_resumed_modules, checked_budget,
+                                     checked_label_boost, checked_module_names, load_train_state, lr_factor,
+                                     save_train_state, set_lr, setup_torch, trainable_parameters)
 
 ROOT_CHANNELS = slice(ROOT_ROT_VEL.start, ROOT_Y.stop)  # yaw velocity, xz velocity (facing frame), root height
 HORIZONTAL = [0, 2]  # x and z of a joint position (y is up)
@@ -99,28 +99,6 @@ class VAETrainConfig:
             self.grow_latent_tokens = inputs.int_in_range(self.grow_latent_tokens, "grow_latent_tokens", 1, 64)
         self.train_modules = checked_module_names(self.train_modules)
         self.label_boost = checked_label_boost(self.label_boost)
-
-
-def checked_label_boost(boost) -> dict | None:
-    """``label_boost`` as {label: factor}, each factor a number from 0.01 to 1000."""
-    if boost is None:
-        return None
-    if not isinstance(boost, dict) or not boost:
-        raise inputs.InputError(f"label_boost must be a non-empty {{label: factor}} object, got {boost!r}")
-    return {str(label): inputs.number_in_range(f, f"label_boost[{label!r}]", 0.01, 1000.0) for label, f in boost.items()}
-
-
-def boosted_weights(labels: list, balance_power: float, boost: dict | None) -> np.ndarray:
-    """Sampling weights: content-balanced (common.balanced_weights), then the clips of each label in ``boost`` times
-    its factor; a boosted label no clip has is an error (a misspelt label would otherwise boost nothing)."""
-    weights = balanced_weights(labels, balance_power)
-    for label, factor in (boost or {}).items():
-        mine = np.array([l == label for l in labels])
-        if not mine.any():
-            raise inputs.InputError(f"label_boost: no train clip is labelled {label!r} "
-                                    f"(labels: {', '.join(sorted(set(labels)))})")
-        weights = np.where(mine, weights * factor, weights)
-    return weights / weights.sum()
 
 
 def feature_weights(feature_dim: int, root_weight: float) -> torch.Tensor | None:
