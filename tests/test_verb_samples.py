@@ -14,6 +14,7 @@ import pytest
 from mld_core.cli import main as cli
 from mld_core.data.dataset import read_captions, split_ids
 from mld_core.eval import physical
+from mld_core.motion.features import features_to_joints
 from mld_core.testing import tiny_model
 
 REPO = Path(__file__).resolve().parents[1]
@@ -89,7 +90,9 @@ def test_kept_takes_become_a_folder_that_merges_and_a_second_run_goes_on(samples
     for p in kept:
         sid = f"S{p['id']}_{p['caption_index']}_{p['seed']}"
         assert [c.text for c in read_captions(out / "texts" / f"{sid}.txt")] == [p["caption"]]
-        assert np.load(out / "new_joint_vecs" / f"{sid}.npy").shape == (60, 263)
+        features, joints = np.load(out / "new_joint_vecs" / f"{sid}.npy"), np.load(out / "new_joints" / f"{sid}.npy")
+        assert features.shape == (60, 263) and joints[..., 1].min() == pytest.approx(0.0, abs=1e-5)  # on the floor
+        np.testing.assert_allclose(features_to_joints(features), joints, atol=1e-4)  # the features say the same
         assert json.loads((out / "actions.json").read_text())["clips"][sid] == p["verb"]
     assert {p["verb"] for p in kept} == {"jump", "crawl"}  # one kept take per verb, then the verb stops
     again = len(progress)
