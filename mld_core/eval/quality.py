@@ -256,13 +256,17 @@ def side_badge(prompt: str | None, joints: np.ndarray, fps: float = 20.0) -> str
     return None if ask is None else named_side.side_used(ask, physical.classify(joints, fps))
 
 
+def verbs_shown(prompt: str | None, joints: np.ndarray, fps: float = 20.0) -> tuple[int, int]:
+    """(how many of the checked verbs the prompt names the take shows by their physical checks, how many it names)."""
+    verbs = verbs_in_order(prompt) if prompt else []
+    return sum(bool(physical.shows(joints, verb, fps)) for verb in verbs), len(verbs)
+
+
 def verb_badge(prompt: str | None, joints: np.ndarray, fps: float = 20.0) -> str | None:
     """"shown" when the take shows every checked verb the prompt names (mld_core.data.verbs) by its physical check,
     "missed" when not, None when the prompt names none."""
-    verbs = verbs_in_order(prompt) if prompt else []
-    if not verbs:
-        return None
-    return "shown" if all(physical.shows(joints, verb, fps) for verb in verbs) else "missed"
+    shown, named = verbs_shown(prompt, joints, fps)
+    return None if not named else "shown" if shown == named else "missed"
 
 
 def rank_output(out, scorer: QualityScorer, num_variants: int, prompts: Sequence[str] | None = None):

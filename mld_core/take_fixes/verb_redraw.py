@@ -9,17 +9,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable, ClassVar
 
-from mld_core.data.verbs import verbs_in_order
-from mld_core.eval import physical
+from mld_core.eval.quality import verbs_shown
 from mld_core.take_fixes.redraw import redraw_missed
 from mld_core.take_fixes.side_redraw import judge_side
 
 
 def judge_verb(prompt: str, joints, fps: float) -> tuple[tuple[int, int], bool]:
     """((verbs shown, side score), complete) of a take; a prompt naming no checked verb is complete."""
-    verbs = verbs_in_order(prompt)
-    shown = sum(bool(physical.shows(joints, verb, fps)) for verb in verbs)
-    return (shown, judge_side(prompt, joints, fps)[0]), shown == len(verbs)
+    shown, named = verbs_shown(prompt, joints, fps)
+    return (shown, judge_side(prompt, joints, fps)[0]), shown == named
 
 
 @dataclass
