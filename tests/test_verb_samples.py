@@ -22,7 +22,7 @@ CLIPS = {  # id: (label, captions, split)
     "01_01": ("jump", ["a person jumps forward", "a person hops in place"], "train"),
     "01_02": ("jump", ["a person jumps over a puddle"], "train"),  # the benchmark's user prompt: never used
     "M01_01": ("jump", ["a person jumps forward"], "train"),  # a mirrored copy: left out
-    "02_01": ("crawl", ["someone crawls on all fours"], "train"),
+    "02_01": ("crawl", ["someone crawls on all fours"] * 2, "train"),  # a caption listed twice: one candidate
     "02_02": ("crawl", ["a person crawls"], "test"),  # not a train clip
     "03_01": ("walk", ["a person walks"], "train"),  # not a checked verb
 }
@@ -67,6 +67,12 @@ def test_the_candidates_are_train_captions_naming_the_clips_verb_and_never_a_mea
     assert [(o["verb"], o["seed"]) for o in order[:3]] == [("jump", 0), ("crawl", 0), ("jump", 0)]
     assert sum(o["verb"] == "jump" for o in order) == 8 and sum(o["verb"] == "crawl" for o in order) == 8
     assert [o["seed"] for o in order if o["verb"] == "crawl"] == list(range(8))  # one caption: a seed a round
+    twice = {"id": "02_01", "caption": "someone crawls on all fours", "caption_index": 0, "seed": 0, "verb": "crawl",
+             "kept": True, "draw": 0}
+    out = tmp_path / "out"
+    out.mkdir()
+    samples.write_index(out, [twice, dict(twice)], ["crawl"])  # a take an older run tried twice is listed once
+    assert split_ids(out, "train") == ["S02_01_0_0"]
 
 
 def test_kept_takes_become_a_folder_that_merges_and_a_second_run_goes_on(samples, tmp_path, monkeypatch, capsys):

@@ -61,7 +61,7 @@ def measured_prompts(cmu: Path | None) -> set[str]:
 
 def candidates(data: Path, excluded: set[str]) -> dict[str, list[tuple[str, str, int]]]:
     """{verb: [(clip id, caption, frames), ...]}: the train clips labelled with a checked verb (mirrored copies left
-    out), one entry per caption of theirs that names that verb, in id order."""
+    out), one entry per caption of theirs that names that verb (a caption a clip lists twice, once), in id order."""
     labels = (read_actions(data) or {}).get("clips", {})
     out: dict[str, list] = {verb: [] for verb in VERBS}
     for cid in sorted(split_ids(data, "train")):
@@ -69,9 +69,8 @@ def candidates(data: Path, excluded: set[str]) -> dict[str, list[tuple[str, str,
         if verb not in out or cid.startswith("M"):
             continue
         frames = int(np.load(data / "new_joint_vecs" / f"{cid}.npy", mmap_mode="r").shape[0])
-        for cap in read_captions(data / "texts" / f"{cid}.txt"):
-            if verb in verbs_in(cap.text) and plain(cap.text) not in excluded:
-                out[verb].append((cid, cap.text, frames))
+        texts = dict.fromkeys(cap.text for cap in read_captions(data / "texts" / f"{cid}.txt"))
+        out[verb] += [(cid, text, frames) for text in texts if verb in verbs_in(text) and plain(text) not in excluded]
     return out
 
 
@@ -124,7 +123,7 @@ def write_take(out: Path, sid: str, features: np.ndarray, joints: np.ndarray, ca
 
 def write_index(out: Path, done: list[dict], classes: list[str]) -> None:
     """train.txt / all.txt (every kept take), empty val.txt and test.txt, actions.json (each take's verb)."""
-    kept = [d for d in done if d["kept"]]
+    kept = list({take_id(d): d for d in done if d["kept"]}.values())  # a take tried twice (an older run's), once
     ids = [take_id(d) for d in kept]
     for split, rows in (("train", ids), ("all", ids), ("val", []), ("test", [])):
         (out / f"{split}.txt").write_text("".join(f"{i}\n" for i in rows), encoding="utf-8")
