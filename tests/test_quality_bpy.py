@@ -128,8 +128,9 @@ def test_batch_manifest_records_coverage_and_badges_per_take(tmp_path, tiny_with
     assert [t["coverage"]["verdict"] for t in takes] == ["known", "unknown"]
     assert takes[1]["coverage"]["nearest"][0]["caption"] == "a person walks."
     for t in takes:
-        assert set(t["badges"]) == {"adherence", "similarity", "skating", "float", "penetration_cm", "jitter", "side"}
-        assert t["badges"]["side"] is None  # neither prompt names a side
+        assert set(t["badges"]) == {"adherence", "similarity", "skating", "float", "penetration_cm", "jitter", "side",
+                                    "verb"}
+        assert t["badges"]["side"] is None and t["badges"]["verb"] is None  # neither prompt names a side or a verb
         assert t["draw"] == 0  # nor is drawn again
         assert t["coverage_verdict"] == t["coverage"]["verdict"]  # the Action's custom properties, flattened
 
