@@ -19,8 +19,7 @@ every take's prompt, seed, pass, draw, lowest joint and foot float. The ``low cm
 row's takes of each take's lowest joint height, in cm (every prepared clip has its lowest joint on the floor, 0: below
 0 the take sinks into the floor, above it hovers all take long); ``float`` the mean of their foot float badge (the
 share of frames with no toe on the floor outside jumps: ``mld_core.eval.quality.foot_float``); each followed by the
-real windows' figure. ``--verb-redraws`` (default: the model's config ``verb_redraws``) draws a
-take that misses its prompt's verb again: 0 measures the model alone, as v4's targets do; the model's own count
+real windows' figure. ``--verb-redraws`` (default: the model's config ``verb_redraws``) draws a take that misses its prompt's verb again: 0 measures the model alone, as v4's targets do; the model's own count
 measures what a user gets, with the share of takes drawn again and the seconds spent on it. ``--vae-recon`` generates nothing: it passes the real windows through the
 model's VAE and prints each verb's pass rate before and after (the ceiling a denoiser on that VAE can reach; a
 VAE-only run folder works), with the median value of the verb's check before and after (a throw's peak wrist speed
@@ -104,8 +103,12 @@ def vae_recon_results(pipe, data: Path, wins: list[tuple[str, list[str]]], verb:
     return results
 
 
-def real_results(data: Path, wins: list[tuple[str, list[str]]], verb: str) -> list[tuple[bool, float]]:
-    return [physical.verb_result(np.load(data / "new_joints" / f"{cid}.npy"), verb) for cid, _ in wins]
+def real_joints(data: Path, wins: list[tuple[str, list[str]]]) -> list[np.ndarray]:
+    return [np.load(data / "new_joints" / f"{cid}.npy") for cid, _ in wins]
+
+
+def real_results(joints: list[np.ndarray], verb: str) -> list[tuple[bool, float]]:
+    return [physical.verb_result(j, verb) for j in joints]
 
 
 def lowest_cm(joints) -> float:
@@ -113,9 +116,8 @@ def lowest_cm(joints) -> float:
     return 100.0 * float(np.asarray(joints)[..., 1].min())
 
 
-def real_floor(data: Path, wins: list[tuple[str, list[str]]]) -> tuple[float, float]:
+def real_floor(joints: list[np.ndarray]) -> tuple[float, float]:
     """The real windows' median lowest joint (cm) and mean foot float (nan for none)."""
-    joints = [np.load(data / "new_joints" / f"{cid}.npy") for cid, _ in wins]
     if not joints:
         return float("nan"), float("nan")
     return float(np.median([lowest_cm(j) for j in joints])), float(np.mean([foot_float(j) for j in joints]))
@@ -173,7 +175,7 @@ def main(argv=None) -> int:
         print(f"{'verb':12} {'windows':>7} {'real':>6} {'recon':>6} {'median value real':>18} {'recon':>6}")
         for verb in verbs:
             _, real_wins = prompts_for(args.data, verb, whole, args.captions, args.split)
-            real, real_value = rate_and_median(real_results(args.data, real_wins, verb))
+            real, real_value = rate_and_median(real_results(real_joints(args.data, real_wins), verb))
             recon, recon_value = rate_and_median(vae_recon_results(pipe, args.data, real_wins, verb))
             rows.append({"verb": verb, "real_windows": len(real_wins), "real": real, "vae_recon": recon,
                          "real_median_value": real_value, "vae_recon_median_value": recon_value})
@@ -196,8 +198,9 @@ def main(argv=None) -> int:
         wordings, real_wins = prompts_for(args.data, verb, whole, args.captions, args.split)
         if by_action:
             wordings = {"action": [verb]}
-        real = rate_and_median(real_results(args.data, real_wins, verb))[0]
-        real_low, real_float = real_floor(args.data, real_wins)
+        joints = real_joints(args.data, real_wins)
+        real = rate_and_median(real_results(joints, verb))[0]
+        real_low, real_float = real_floor(joints)
         for wording, prompts in wordings.items():
             passed, lows, floats = [], [], []
             for prompt in prompts:

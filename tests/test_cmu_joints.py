@@ -410,9 +410,9 @@ def test_the_vocabulary_benchmark_reports_how_far_takes_sink_or_hover(clips, tmp
     assert max(abs(v) for v in lows[False]) > 1.0  # the tiny model's noise is nowhere near the floor
     assert "low cm" in capsys.readouterr().out
     real = [(cid, []) for cid in split_ids(out, "all")]  # the prepared clips: each one's lowest joint on the floor
-    low, flt = vocabulary.real_floor(out, real)
+    low, flt = vocabulary.real_floor(vocabulary.real_joints(out, real))
     assert low == pytest.approx(0.0, abs=0.01) and 0.0 <= flt <= 1.0
-    assert all(np.isnan(vocabulary.real_floor(out, [])))
+    assert all(np.isnan(vocabulary.real_floor([])))
 
 
 def test_the_vocabulary_benchmark_reads_real_windows_through_a_vae(clips, tmp_path, capsys, monkeypatch):

@@ -985,9 +985,12 @@ def test_a_denoiser_draws_its_boosted_labels_more_often_and_refuses_a_label_no_c
     assert used == [(["a", "b"], {"b": 4.0})]
     assert json.loads((run / "config.json").read_text())["provenance"]["denoiser_training"]["label_boost"] == {"b": 4.0}
     capsys.readouterr()
+    encoded = []
+    monkeypatch.setattr(denoiser, "encode_latents", lambda *a, **k: encoded.append(1))
     bad = tmp_path / "bad"
     assert main(args + ["--out", str(bad), "--config", json.dumps({**TINY_DEN, "label_boost": {"c": 4}})]) == 2
     assert "no train clip is labelled 'c' (labels: a, b)" in capsys.readouterr().err
+    assert encoded == [] and not bad.exists()  # refused before the slow encoding, nothing left behind
 
 
 def test_vae_sittings_carry_their_lineage_and_a_vae_alone_exports_to_continue_from(tmp_path, capsys):

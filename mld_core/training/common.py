@@ -73,16 +73,23 @@ def checked_label_boost(boost) -> dict | None:
     return {str(label): inputs.number_in_range(f, f"label_boost[{label!r}]", 0.01, 1000.0) for label, f in boost.items()}
 
 
+def check_boosted_labels(labels, boost: dict | None) -> None:
+    """A label in ``boost`` that no clip of ``labels`` has is an error (a misspelt label would otherwise boost
+    nothing)."""
+    known = set(labels)
+    for label in boost or {}:
+        if label not in known:
+            raise inputs.InputError(f"label_boost: no train clip is labelled {label!r} "
+                                    f"(labels: {', '.join(sorted(known))})")
+
+
 def boosted_weights(labels: list, balance_power: float, boost: dict | None) -> np.ndarray:
     """Sampling weights: content-balanced (balanced_weights), then the clips of each label in ``boost`` times
-    its factor; a boosted label no clip has is an error (a misspelt label would otherwise boost nothing)."""
+    its factor (check_boosted_labels first)."""
+    check_boosted_labels(labels, boost)
     weights = balanced_weights(labels, balance_power)
     for label, factor in (boost or {}).items():
-        mine = np.array([l == label for l in labels])
-        if not mine.any():
-            raise inputs.InputError(f"label_boost: no train clip is labelled {label!r} "
-                                    f"(labels: {', '.join(sorted(set(labels)))})")
-        weights = np.where(mine, weights * factor, weights)
+        weights = np.where(np.array([l == label for l in labels]), weights * factor, weights)
     return weights / weights.sum()
 
 

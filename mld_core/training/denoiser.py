@@ -34,9 +34,9 @@ from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser, grow_latent
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import DDPMScheduler
 from mld_core.training import distributed
-from mld_core.training.common import (Budget, boosted_weights, check_resumed_modules, checked_budget,
-                                     checked_label_boost, checked_module_names, load_train_state, lr_factor,
-                                     save_train_state, set_lr, setup_torch, trainable_parameters)
+from mld_core.training.common import (Budget, boosted_weights, check_boosted_labels, check_resumed_modules,
+                                     checked_budget, checked_label_boost, checked_module_names, load_train_state,
+                                     lr_factor, save_train_state, set_lr, setup_torch, trainable_parameters)
 from mld_core.training.vae import GROWTH_NOISE, prepare_run_dir
 
 LATENT_CACHE = "latents.safetensors"
@@ -295,6 +295,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     units = text_units(load_split(cfg.data, "train"), fps)
     if not units:
         raise ValueError(f"{cfg.data}: the train split is empty")
+    check_boosted_labels([u.label for u in units], cfg.label_boost)  # before the slow encoding, not after it
     actions = sorted({u.label for u in units if u.label != "?"}) if cfg.cond == "action" else list(base.actions)
     init = load_config(Path(cfg.init)) if cfg.init else None
     if init is not None and init.denoiser is None:

@@ -7,8 +7,8 @@ For each checked verb (mld_core/data/verbs.py), the train clips of ``--data`` la
 are taken in turn, each caption naming it with its own seed, until ``--per-verb`` takes of that verb are kept: the
 model (its verb guidance and verb redraws included) makes the caption at the clip's length, and a take is kept when
 it shows every verb the caption names, and written with its lowest joint on the floor as every prepared clip has it
-(``put_on_floor``: a model's takes may sink into the floor or hover above it). The captions ``scripts/vocabulary.py`` measures (its caption wording on the
-CMU folder, its commands and its user prompts) are never used. The folder is what ``data prepare`` writes (features,
+(``put_on_floor``: a model's takes may sink into the floor or hover above it). The captions ``scripts/vocabulary.py``
+measures (its caption wording on the CMU folder, its commands and its user prompts) are never used. The folder is what ``data prepare`` writes (features,
 joints, captions, train.txt, actions.json with the clip's label), so ``data merge`` joins it to the training data: a
 denoiser fine-tuned on the merge learns from the takes of its own that show what was asked (rejection-sampled
 fine-tuning). A run stops after ``--minutes`` and a second run on the same ``--out`` goes on where it stopped.
@@ -111,13 +111,15 @@ def start_folder(data: Path, out: Path) -> None:
         f"model that made it and of the data that model was trained on ({data.name}/LICENSE).\n", encoding="utf-8")
 
 
-def write_take(out: Path, sid: str, features: np.ndarray, joints: np.ndarray, caption: str) -> None:
-    """One take as prepared data: features and joints moved as a whole so the lowest joint is on the floor."""
+def write_take(out: Path, sid: str, features: np.ndarray, caption: str) -> None:
+    """One take as prepared data: its features moved as a whole so the lowest joint is on the floor, and the joints
+    they give."""
+    from mld_core.motion.features import features_to_joints
     from mld_core.take_fixes.repair import put_on_floor
 
-    joints = np.asarray(joints, dtype=np.float64)
-    np.save(out / "new_joint_vecs" / f"{sid}.npy", put_on_floor(features).astype(np.float32))
-    np.save(out / "new_joints" / f"{sid}.npy", (joints - [0.0, joints[..., 1].min(), 0.0]).astype(np.float32))
+    features = put_on_floor(features).astype(np.float32)
+    np.save(out / "new_joint_vecs" / f"{sid}.npy", features)
+    np.save(out / "new_joints" / f"{sid}.npy", features_to_joints(features))
     (out / "texts" / f"{sid}.txt").write_text(f"{caption}##0.0#0.0\n", encoding="utf-8")
 
 
@@ -175,7 +177,7 @@ def run(args) -> int:
                           "seed": b["seed"], "verb": b["verb"], "kept": not reason.endswith("missed"),
                           "draw": int(out.draws[r]) if out.draws else 0}
                 if record["kept"]:
-                    write_take(args.out, take_id(record), out.features[r, :n], out.joints[r, :n], b["caption"])
+                    write_take(args.out, take_id(record), out.features[r, :n], b["caption"])
                 log.write(json.dumps(record) + "\n")
                 done.append(record)
                 kept[b["verb"]] += record["kept"]
