@@ -512,7 +512,7 @@ def key_every_line(args, addon, inp: _Inputs, pipe, scene, obj) -> tuple[list, l
         if take.coverage is not None and take.coverage.verdict == "unknown":
             print(f"warning: line {line.line}: {take.coverage.warning()}", file=sys.stderr)
         level, side_text = side_report(take.prompt, getattr(take.badges, "side", None), take.draw,
-                                       redrawn_for=take.redrawn_for)
+                                       redrawn_for=take.redrawn_for, verb=getattr(take.badges, "verb", None))
         if level:
             print(f"{level}: line {line.line}: {side_text}", file=sys.stderr)
         for kind, metres, met in take.residuals or []:

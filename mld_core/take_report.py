@@ -10,7 +10,7 @@ from typing import Sequence
 
 from mld_core.condition.coverage import Coverage
 from mld_core.eval import named_side
-from mld_core.eval.quality import REAL_JERK_P95, Badges, format_table, side_badge
+from mld_core.eval.quality import REAL_JERK_P95, Badges, format_table, side_badge, verb_badge
 
 
 class BeyondModel(ValueError):
@@ -80,36 +80,54 @@ def verb_note(prompt: str, draw: int, redrawn_for: str) -> str:
     return f"draw {draw} of its seed: an earlier one did not show {asked} as the prompt says"
 
 
+def missed_verb_note(prompt: str, verb: str | None) -> str:
+    """'' unless a take's verb badge ``verb`` is "missed" (mld_core.eval.quality.verb_badge); then what the prompt
+    asked for that the take does not show."""
+    from mld_core.data.verbs import VERB_SHOWN, verbs_in_order
+
+    verbs = verbs_in_order(prompt) if verb == "missed" else []
+    if not verbs:
+        return ""
+    asked = VERB_SHOWN[verbs[0]] if len(verbs) == 1 else "all of " + " and ".join(VERB_SHOWN[v] for v in verbs)
+    return f"it does not show {asked} as the prompt says"
+
+
 def side_report(prompt: str, side: str | None, draw: int, retry: str = PANEL_RETRY,
-                redrawn_for: str | None = None) -> tuple[str, str]:
-    """What the user is told about a take's side and verbs, from its side badge ``side``, its ``draw`` and
-    ``redrawn_for`` (MLDOutput.redrawn_for's entry; None when not known, read as the side redraws'): ("warning", what
-    it did against the prompt + ``retry``) when it used only the opposite side, or when the verb redraws found no
-    draw that shows the prompt's verbs; ("note", why it is a later draw of its seed) when a redraw drew it again;
-    else ("", "")."""
+                redrawn_for: str | None = None, verb: str | None = None) -> tuple[str, str]:
+    """What the user is told about a take's side and verbs, from its side badge ``side``, its ``draw``,
+    ``redrawn_for`` (MLDOutput.redrawn_for's entry; None when not known, read as the side redraws') and its verb
+    badge ``verb`` (None: not badged): ("warning", what it did against the prompt + ``retry``) when it used only the
+    opposite side, when the verb redraws found no draw that shows the prompt's verbs, or when its verb badge says it
+    misses them; ("note", why it is a later draw of its seed) when a redraw drew it again; else ("", "")."""
     note = opposite_side_note(prompt, side)
     if note:
         return "warning", note + retry
-    verb = verb_note(prompt, draw, redrawn_for or "")
-    if verb and redrawn_for == "verb missed":
-        return "warning", verb + (CLI_VERB_RETRY if retry == CLI_RETRY else retry)
-    if verb:
-        return "note", verb
+    verb_retry = CLI_VERB_RETRY if retry == CLI_RETRY else retry
+    redrawn = verb_note(prompt, draw, redrawn_for or "")
+    if redrawn and redrawn_for == "verb missed":
+        return "warning", redrawn + verb_retry
+    missed = missed_verb_note(prompt, verb)
+    if missed:
+        return "warning", missed + verb_retry
+    if redrawn:
+        return "note", redrawn
     note = redrawn_note(prompt, draw, side) if not (redrawn_for or "").startswith("verb") else ""
     return ("note", note) if note else ("", "")
 
 
 def side_lines(out) -> list[str]:
-    """``generate``'s line per take of ``out`` that used the opposite side, shows no verb its redraws looked for, or
-    is a later draw (side_report); each take's side from its badge when ranked, else checked here."""
+    """``generate``'s line per take of ``out`` that used the opposite side, does not show the verbs its prompt names
+    (by its redraws or its verb badge), or is a later draw (side_report); each take's side and verb badges its own when
+    ranked, else checked here."""
     lines = []
     for row, prompt in enumerate(out.prompts):
         if out.badges is not None:
-            side = out.badges[row].side
+            side, verb = out.badges[row].side, out.badges[row].verb
         else:
-            side = side_badge(prompt, out.joints[row, : int(out.lengths[row])], out.fps)
+            joints = out.joints[row, : int(out.lengths[row])]
+            side, verb = side_badge(prompt, joints, out.fps), verb_badge(prompt, joints, out.fps)
         reason = out.redrawn_for[row] if getattr(out, "redrawn_for", None) else None
-        level, text = side_report(prompt, side, out.draws[row] if out.draws else 0, CLI_RETRY, reason)
+        level, text = side_report(prompt, side, out.draws[row] if out.draws else 0, CLI_RETRY, reason, verb)
         if level:
             joint = " is" if level == "note" else ":"  # "take 0 (seed 41) is draw 1 ...", "take 0 (seed 41): it turns"
             lines.append(f"{level}: take {row} (seed {out.seeds[row]}){joint} {text}")

@@ -180,3 +180,9 @@ def test_the_batch_draws_a_take_again_for_its_verb_when_told_to(tmp_path, tiny_w
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert json.loads(blend.with_suffix(".json").read_text())["takes"][0]["draw"] == out.draws[0]
     assert words in proc.stderr and "turn" not in proc.stderr
+    # without redraws the first draw is keyed, and its verb badge says what it does not show
+    proc = run_python([REPO / "blender_addon" / "batch.py", "--prompt", prompt, "--model", tiny_with_index, "--steps",
+                       "2", "--seconds", "1.5", "--seed", "0", "--verb-redraws", "0", "--out", tmp_path / "no.blend"],
+                      user_dir=tmp_path / "blender_user", timeout=180)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "warning: line 1: it does not show a jump as the prompt says (try another seed" in proc.stderr

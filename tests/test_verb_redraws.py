@@ -179,3 +179,33 @@ def test_ranked_variants_put_a_take_that_misses_its_verb_last_and_the_user_sees_
         assert ranked.seeds == [kept, missed] and [b.verb for b in ranked.badges] == ["shown", "missed"]
         assert take_report.keep_best(ranked, 2, 1).seeds == [kept]
         assert take_report.badge_table(ranked).splitlines()[3].split()[-1] == "missed"
+
+
+def test_a_ranked_take_whose_verb_badge_says_missed_is_a_warning_without_redraws(pipe, monkeypatch):
+    """With no verb redraws (the bundled model's default), the verb badge still tells the user: generate's line, and
+    the add-on's and the batch's report; a take that shows its verbs, or a prompt naming none, gets no such line."""
+    draws = _draws(pipe, JUMP, 2.0, 5, [0])
+    _shown_by_draw(monkeypatch, draws, {0: False})
+    out = pipe(JUMP, 2.0, seed=5, verb_redraws=0, rank=True)
+    assert out.badges[0].verb == "missed"
+    assert take_report.side_lines(out) == [
+        "warning: take 0 (seed 5): it does not show a jump as the prompt says; try another --seed, more "
+        "--verb-redraws, or --variants 4 --best 1 (ranking puts such takes last)"]
+    assert take_report.side_report(JUMP, "named", 0, verb="missed") == (
+        "warning", "it does not show a jump as the prompt says (try another seed, or more variants)")
+    two = "a person jumps and kicks"
+    assert take_report.side_report(two, None, 0, verb="missed")[1].startswith(
+        "it does not show all of a jump and a kick as the prompt says")
+    assert take_report.side_report(JUMP, None, 0, verb="shown") == ("", "")
+    assert take_report.side_report("a person walks", None, 0, verb="missed") == ("", "")  # names no checked verb
+    assert take_report.side_report(JUMP, None, 0, verb=None) == ("", "")  # not badged: nothing said
+    # the opposite side is said first; the redraws' own warning is not said twice
+    assert "turns right" in take_report.side_report("a person jumps and turns left", "opposite", 0, verb="missed")[1]
+    level, text = take_report.side_report(JUMP, None, 0, redrawn_for="verb missed", verb="missed")
+    assert level == "warning" and text.startswith("no draw of its seed showed a jump")
+    unranked = pipe(JUMP, 2.0, seed=5, verb_redraws=0)  # generate without --best: the verb checked for the line
+    assert unranked.badges is None and take_report.side_lines(unranked) == take_report.side_lines(out)
+    _shown_by_draw(monkeypatch, draws, {0: True})
+    shown = pipe(JUMP, 2.0, seed=5, verb_redraws=0, rank=True)
+    assert shown.badges[0].verb == "shown" and take_report.side_lines(shown) == []
+    assert take_report.side_lines(pipe(JUMP, 2.0, seed=5, verb_redraws=0)) == []

@@ -154,7 +154,7 @@ def finish_job(job, target: Target | None) -> tuple[str, str]:
     first = job.result.takes[0] if job.result.takes else None
     if first is not None:
         _, side_text = side_report(first.prompt, getattr(first.badges, "side", None), first.draw,
-                                   redrawn_for=first.redrawn_for)
+                                   redrawn_for=first.redrawn_for, verb=getattr(first.badges, "verb", None))
         message += f"; {side_text}" if side_text else ""
         for seam in seam_lines(first.seams, [prompt for prompt, _ in first.segments or []]):
             message += f"; {seam}"
