@@ -1186,3 +1186,32 @@ def test_an_action_run_on_a_text_runs_latents_guides_it_and_the_guide_stays_with
     config = load_config(again)
     assert config.verb_guide is None and "verb_guide" not in config.provenance
     assert MLDPipeline.from_pretrained(again).verb_guide is None
+
+
+def test_a_denoiser_run_reuses_another_runs_caches_with_caches_from(folder, tmp_path, monkeypatch):
+    """caches_from: the latent and caption caches are copied from a run of the same data and VAE, so nothing is
+    encoded again; a caption cache made for other captions is still made again (its SHA-256)."""
+    from mld_core.training import denoiser
+
+    vae_run = tmp_path / "vae"
+    assert main(["train", "vae", "--data", str(folder), "--out", str(vae_run), "--steps", "2", "--threads", "1",
+                 "--config", json.dumps(TINY_VAE)]) == 0
+    args = ["train", "denoiser", "--data", str(folder), "--vae", str(vae_run), "--steps", "2", "--threads", "1"]
+    first = tmp_path / "first"
+    assert main(args + ["--out", str(first), "--config", json.dumps(TINY_DEN)]) == 0
+
+    def refuse(*a, **k):
+        raise AssertionError("encoded again")
+
+    monkeypatch.setattr(denoiser, "encode_latents", refuse)
+    monkeypatch.setattr(denoiser, "embed_captions", refuse)
+    second = tmp_path / "second"
+    assert main(args + ["--out", str(second), "--config", json.dumps({**TINY_DEN, "caches_from": str(first)})]) == 0
+    for name in (denoiser.LATENT_CACHE, denoiser.TEXT_CACHE):
+        assert (second / name).read_bytes() == (first / name).read_bytes()
+    reworded = tmp_path / "reworded"  # other captions: the copied caption cache does not fit and is made again
+    with pytest.raises(AssertionError, match="encoded again"):
+        denoiser.train_denoiser(denoiser.DenoiserTrainConfig(
+            data=str(folder), vae=str(vae_run), out=str(reworded), steps=1, threads=1, reworded_captions=2,
+            caches_from=str(first), **{k: v for k, v in TINY_DEN.items() if k != "denoiser"},
+            denoiser=denoiser.DenoiserConfig(**TINY_DEN["denoiser"])))

@@ -4,8 +4,8 @@
 
 Latents are precomputed once (the encoder means of ``crops_per_clip`` random crops per clip plus the whole clip) and
 cached in the run folder, as are the frozen text encoder's embeddings of every caption. DDPM training with epsilon
-prediction, condition dropout for classifier-free guidance, content-balanced sampling and an EMA of the weights.
-The run folder is a complete model folder (config.json, vae.safetensors, denoiser.safetensors). ``batch_size`` is
+prediction, condition dropout for classifier-free guidance, content-balanced sampling and an EMA of the weights;
+with ``fold_verb_guide`` the target is a verb-guided model's own guided noise instead (``verb_fold``). The run folder is a complete model folder (config.json, vae.safetensors, denoiser.safetensors). ``batch_size`` is
 the whole batch, split between torchrun's processes (mld_core.training.distributed); the latents and caption
 embeddings sit on the training device.
 """
@@ -38,6 +38,7 @@ from mld_core.training.common import (Budget, boosted_weights, check_boosted_lab
                                      checked_budget, checked_label_boost, checked_module_names, load_train_state,
                                      lr_factor, save_train_state, set_lr, setup_torch, trainable_parameters)
 from mld_core.training.vae import GROWTH_NOISE, prepare_run_dir
+from mld_core.training.verb_fold import check_foldable, load_verb_fold
 
 LATENT_CACHE = "latents.safetensors"
 TEXT_CACHE = "text_embeddings.safetensors"
@@ -76,6 +77,10 @@ class DenoiserTrainConfig:
     verb_hint_dropout: float = 0.2
     verb_hint_lr_scale: float = 30.0  # the hint vectors' learning rate over lr's (they start at zero, the rest trained)
     train_modules: list | None = None  # the denoiser's top-level modules to train (e.g. the text-reading ones); None: all
+    # text only, with --init a model that has a verb denoiser on --vae's VAE: train towards that model's guided noise
+    # (mld_core.training.verb_fold) instead of the drawn noise, so the run samples its verbs without a verb denoiser
+    fold_verb_guide: bool = False
+    caches_from: str | None = None  # a denoiser run of the same data, VAE, seed and captions: its caches copied
     device: str = "cpu"  # cpu, cuda, mps or auto (where this sitting trains; any sitting may resume on another)
     fp32: bool = False  # on CUDA, no mixed precision (default there: bf16 autocast, or fp16 with a gradient scaler)
     denoiser: DenoiserConfig = field(default_factory=DenoiserConfig)
@@ -92,6 +97,11 @@ class DenoiserTrainConfig:
         self.verb_hint_dropout = inputs.number_in_range(self.verb_hint_dropout, "verb_hint_dropout", 0.0, 1.0)
         self.verb_hint_lr_scale = inputs.number_in_range(self.verb_hint_lr_scale, "verb_hint_lr_scale", 0.0, 1000.0)
         self.train_modules = checked_module_names(self.train_modules)
+        self.fold_verb_guide = inputs.true_or_false(self.fold_verb_guide, "fold_verb_guide")
+        if self.fold_verb_guide and (self.cond != "text" or not self.init or self.renormalise_latents
+                                     or self.verb_hints):
+            raise ValueError("fold_verb_guide goes with --cond text and --init (a model with a verb denoiser), "
+                             "without renormalise_latents or verb_hints")
         self.label_boost = checked_label_boost(self.label_boost)
         if isinstance(self.denoiser, dict):
             self.denoiser = DenoiserConfig(**self.denoiser)
@@ -241,13 +251,14 @@ class _DenoiserLoss(torch.nn.Module):
         super().__init__()
         self.denoiser = denoiser
 
-    def forward(self, z_t, t, lengths, noise, drop, text=None, actions=None, verbs=None):
+    def forward(self, z_t, t, lengths, target, drop, text=None, actions=None, verbs=None):
+        """The mean squared error of the predicted noise against ``target`` (the drawn noise, or a fold's)."""
         den, B = self.denoiser, len(z_t)
         if den.config.cond == "none":
             cond = den.null_tokens(B)
         else:
             cond = den.condition_tokens(B, text=text, actions=actions, verbs=verbs, drop=drop)
-        return torch.nn.functional.mse_loss(den(z_t, t, cond, lengths).float(), noise)
+        return torch.nn.functional.mse_loss(den(z_t, t, cond, lengths).float(), target)
 
 
 def initial_denoiser(init: Path, init_cfg: DenoiserConfig, dcfg: DenoiserConfig, new_condition: bool,
@@ -281,7 +292,14 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     out, vae_dir = Path(cfg.out), Path(cfg.vae)
     base = load_config(vae_dir)
     rt = distributed.runtime(cfg.device, cfg.bf16, cfg.fp32, (cfg.batch_size, "batch_size"))  # before any writing
-    rt.on_main(lambda: prepare_run_dir(out, resume))
+
+    def prepare():
+        prepare_run_dir(out, resume)
+        for name in (LATENT_CACHE, TEXT_CACHE) if cfg.caches_from and not resume else ():
+            if (Path(cfg.caches_from) / name).is_file():
+                shutil.copyfile(Path(cfg.caches_from) / name, out / name)
+
+    rt.on_main(prepare)
     setup_torch(cfg.seed, cfg.threads)
     vae = MotionVAE(base.vae)
     load_weights(vae_dir / "vae.safetensors", vae)
@@ -300,6 +318,8 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     init = load_config(Path(cfg.init)) if cfg.init else None
     if init is not None and init.denoiser is None:
         raise ValueError(f"--init {cfg.init} has no denoiser to continue from")
+    if cfg.fold_verb_guide:  # before the slow encoding
+        check_foldable(Path(cfg.init), init, vae_dir)
     init_cfg = copy.deepcopy(init.denoiser) if init is not None else None
     dcfg = copy.deepcopy(init_cfg) if init is not None else cfg.denoiser
     dcfg.cond = cfg.cond
@@ -350,6 +370,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
         del encoder
         text = {k: v.to(rt.device) for k, v in text.items() if k != "captions_sha256"}
     caption_verbs = verb_hint.verb_ids(captions, dcfg.verb_hints).to(rt.device)  # (captions,), 0: none named
+    fold = load_verb_fold(Path(cfg.init), init, vae_dir, captions, rt.device) if cfg.fold_verb_guide else None
     label_ids = torch.tensor([actions.index(units[u].label) if units[u].label in actions else 0
                               for u in unit_of.tolist()])
 
@@ -384,6 +405,9 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     config.verb_guide = None  # a verb denoiser samples the latents of the denoiser it was attached to, not this one's
     config.provenance = {**{k: v for k, v in base.provenance.items() if k != "verb_guide"},
                          "denoiser_training": recorded_settings(cfg)}
+    if fold is not None:  # the guide this run learns to do without
+        config.provenance["folded_verb_guide"] = {"scale": fold.guide.scale, "actions": fold.guide.actions,
+                                                  "guidance_scale": fold.guidance_scale}
     if rt.is_main:
         shutil.copyfile(vae_dir / "vae.safetensors", out / "vae.safetensors")
         save_json(out / "train_config.json", {**asdict(cfg), "stage": "denoiser",
@@ -426,8 +450,9 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
                 kwargs["verbs"] = caption_verbs[cap].masked_fill(rt.to_device(unhinted[mine]), verb_hint.NO_VERB)
         elif cfg.cond == "action":
             kwargs["actions"] = label_ids[rows]
+        target = noise if fold is None else fold.targets(z_t, t, lengths[rows], kwargs["text"], drop, cap)
         with rt.autocast():
-            loss = model(z_t, t, lengths[rows], noise, drop, **kwargs)
+            loss = model(z_t, t, lengths[rows], target, drop, **kwargs)
         rt.step(loss * rt.share(B), opt, trained)
         with torch.no_grad():
             decay = min(cfg.ema_decay, (1 + step) / (10 + step))
