@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from mld_core.checkpoint import load_config
+from mld_core.checkpoint import load_config, load_weights
 from mld_core.cli import main
 from mld_core.condition.verb_guide import VerbGuide
 from mld_core.models.denoiser import DenoiserConfig, LatentDenoiser
@@ -19,7 +19,7 @@ from mld_core.pipeline import MLDPipeline
 from mld_core.sampling import VerbGuidance, guided_eps, null_and_cond_eps
 from mld_core.training.denoiser import DenoiserTrainConfig
 from mld_core.training.verb_fold import VerbFold, load_verb_fold
-from tests.test_training import TINY_DEN, TINY_VAE, _write_folder
+from test_training import TINY_DEN, TINY_VAE, _write_folder
 
 REPO = Path(__file__).resolve().parents[1]
 BLOCK = TransformerConfig(dim=16, heads=2, ff_dim=32, layers=1, dropout=0.0)
@@ -90,9 +90,8 @@ def guided(tmp_path_factory):
 
 def _fold_args(data, model, out, steps, vae=None, **settings):
     over = {k: v for k, v in TINY_DEN.items() if k != "denoiser"}
-    return ["train", "denoiser", "--data", str(data), "--vae", str(vae or model), "--init", str(model), "--out", str(out),
-            "--steps", str(steps), "--threads", "1",
-            "--config", json.dumps({**over, "fold_verb_guide": True, **settings})]
+    return ["train", "denoiser", "--data", str(data), "--vae", str(vae or model), "--init", str(model),
+            "--out", str(out), "--steps", str(steps), "--threads", "1", "--config", json.dumps({**over, "fold_verb_guide": True, **settings})]
 
 
 def _distance_to_targets(model_dir: Path, fold: VerbFold, captions: list[str]) -> float:
@@ -102,8 +101,6 @@ def _distance_to_targets(model_dir: Path, fold: VerbFold, captions: list[str]) -
 
     config = load_config(model_dir)
     den = LatentDenoiser(config.denoiser)
-    from mld_core.checkpoint import load_weights
-
     load_weights(model_dir / "denoiser.safetensors", den)
     den.eval()
     emb = load_text_encoder(config.text_encoder)(captions)

@@ -5,9 +5,10 @@
 Latents are precomputed once (the encoder means of ``crops_per_clip`` random crops per clip plus the whole clip) and
 cached in the run folder, as are the frozen text encoder's embeddings of every caption. DDPM training with epsilon
 prediction, condition dropout for classifier-free guidance, content-balanced sampling and an EMA of the weights;
-with ``fold_verb_guide`` the target is a verb-guided model's own guided noise instead (``verb_fold``). The run folder is a complete model folder (config.json, vae.safetensors, denoiser.safetensors). ``batch_size`` is
-the whole batch, split between torchrun's processes (mld_core.training.distributed); the latents and caption
-embeddings sit on the training device.
+with ``fold_verb_guide`` the target is a verb-guided model's own guided noise instead (``verb_fold``). The run
+folder is a complete model folder (config.json, vae.safetensors, denoiser.safetensors). ``batch_size`` is the whole
+batch, split between torchrun's processes (mld_core.training.distributed); the latents and caption embeddings sit
+on the training device.
 """
 
 from __future__ import annotations
