@@ -59,6 +59,16 @@ def _write_folder(root, captions=lambda k: f"a person walks {k}#a/DET#0.0#0.0\ns
     return root
 
 
+def write_verb_folder(root):
+    """The tiny folder with clips that jump, kick and walk in turn, labelled jump, kick and other."""
+    data = _write_folder(root, lambda k: f"a person {('jumps', 'kicks', 'walks')[k % 3]} {k}#a/DET#0.0#0.0\n")
+    labels = json.loads((data / "actions.json").read_text())
+    labels["classes"] = ["jump", "kick", "other"]
+    labels["clips"] = {c: labels["classes"][int(c[4:]) % 3] for c in labels["clips"]}
+    (data / "actions.json").write_text(json.dumps(labels))
+    return data
+
+
 @pytest.fixture(scope="module")
 def folder(tmp_path_factory):
     return _write_folder(tmp_path_factory.mktemp("data"))
@@ -1156,11 +1166,7 @@ def test_an_action_run_on_a_text_runs_latents_guides_it_and_the_guide_stays_with
     spec = importlib.util.spec_from_file_location("attach_verb_guide", REPO / "scripts" / "attach_verb_guide.py")
     attach = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(attach)
-    data = _write_folder(tmp_path / "data", lambda k: f"a person {('jumps', 'kicks', 'walks')[k % 3]} {k}#a/DET#0.0#0.0\n")
-    labels = json.loads((data / "actions.json").read_text())
-    labels["classes"] = ["jump", "kick", "other"]
-    labels["clips"] = {c: labels["classes"][int(c[4:]) % 3] for c in labels["clips"]}
-    (data / "actions.json").write_text(json.dumps(labels))
+    data = write_verb_folder(tmp_path / "data")
     vae, text, action, guided = (tmp_path / n for n in ("vae", "text", "action", "guided"))
     over = {k: v for k, v in TINY_DEN.items() if k != "denoiser"}
     assert main(["train", "vae", "--data", str(data), "--out", str(vae), "--steps", "2", "--threads", "1",
@@ -1215,3 +1221,20 @@ def test_a_denoiser_run_reuses_another_runs_caches_with_caches_from(folder, tmp_
             data=str(folder), vae=str(vae_run), out=str(reworded), steps=1, threads=1, reworded_captions=2,
             caches_from=str(first), **{k: v for k, v in TINY_DEN.items() if k != "denoiser"},
             denoiser=denoiser.DenoiserConfig(**TINY_DEN["denoiser"])))
+
+
+def test_caches_from_that_is_not_a_folder_is_refused_before_anything_is_written(folder, tmp_path, capsys):
+    """A misspelt caches_from would silently encode everything again: one line, exit 2, no run folder."""
+    vae_run = tmp_path / "vae"
+    assert main(["train", "vae", "--data", str(folder), "--out", str(vae_run), "--steps", "1", "--threads", "1",
+                 "--config", json.dumps(TINY_VAE)]) == 0
+    a_file = tmp_path / "a_file"
+    a_file.write_text("mine")
+    for where in (tmp_path / "missing", a_file):
+        out = tmp_path / f"run_{where.name}"
+        capsys.readouterr()
+        assert main(["train", "denoiser", "--data", str(folder), "--vae", str(vae_run), "--steps", "1", "--out",
+                     str(out), "--config", json.dumps({**TINY_DEN, "caches_from": str(where)})]) == 2
+        err = capsys.readouterr().err
+        assert f"caches_from: {where} is not a run folder" in err and "Traceback" not in err
+        assert not out.exists() and a_file.read_text() == "mine"

@@ -19,7 +19,7 @@ from mld_core.pipeline import MLDPipeline
 from mld_core.sampling import VerbGuidance, guided_eps, null_and_cond_eps
 from mld_core.training.denoiser import DenoiserTrainConfig
 from mld_core.training.verb_fold import VerbFold, load_verb_fold
-from test_training import TINY_DEN, TINY_VAE, _write_folder
+from test_training import TINY_DEN, TINY_VAE, write_verb_folder
 
 REPO = Path(__file__).resolve().parents[1]
 BLOCK = TransformerConfig(dim=16, heads=2, ff_dim=32, layers=1, dropout=0.0)
@@ -68,11 +68,7 @@ def test_the_targets_guided_at_s_give_the_two_denoisers_guided_step():
 def guided(tmp_path_factory):
     """A tiny text model with a verb denoiser (labels jump, kick, other) attached at scale 8, and its data."""
     root = tmp_path_factory.mktemp("fold")
-    data = _write_folder(root / "data", lambda k: f"a person {('jumps', 'kicks', 'walks')[k % 3]} {k}#a/DET#0.0#0.0\n")
-    labels = json.loads((data / "actions.json").read_text())
-    labels["classes"] = ["jump", "kick", "other"]
-    labels["clips"] = {c: labels["classes"][int(c[4:]) % 3] for c in labels["clips"]}
-    (data / "actions.json").write_text(json.dumps(labels))
+    data = write_verb_folder(root / "data")
     vae, text, action, model = (root / n for n in ("vae", "text", "action", "guided"))
     over = {k: v for k, v in TINY_DEN.items() if k != "denoiser"}
     base = ["--steps", "3", "--threads", "1"]

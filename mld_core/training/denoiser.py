@@ -212,6 +212,18 @@ def embed_captions(encoder, captions: list[str], max_tokens: int, batch: int = 6
     return {"pooled": torch.cat(pooled), "tokens": torch.cat(tokens), "mask": torch.cat(mask)}
 
 
+def prepare_run_with_caches(out: Path, resume: bool, caches_from: str | None) -> None:
+    """The run folder (``prepare_run_dir``), with the latent and caption caches of the run folder ``caches_from``
+    copied in when a new run starts (a run of the same data, VAE and seed: the caption cache is checked against its
+    captions when read, the latent cache is not)."""
+    if caches_from and not resume and not Path(caches_from).is_dir():
+        raise ValueError(f"caches_from: {caches_from} is not a run folder")
+    prepare_run_dir(out, resume)
+    for name in (LATENT_CACHE, TEXT_CACHE) if caches_from and not resume else ():
+        if (Path(caches_from) / name).is_file():
+            shutil.copyfile(Path(caches_from) / name, out / name)
+
+
 def _cached(path: Path, make) -> dict:
     if path.is_file():
         return load_file(str(path))
@@ -293,14 +305,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     out, vae_dir = Path(cfg.out), Path(cfg.vae)
     base = load_config(vae_dir)
     rt = distributed.runtime(cfg.device, cfg.bf16, cfg.fp32, (cfg.batch_size, "batch_size"))  # before any writing
-
-    def prepare():
-        prepare_run_dir(out, resume)
-        for name in (LATENT_CACHE, TEXT_CACHE) if cfg.caches_from and not resume else ():
-            if (Path(cfg.caches_from) / name).is_file():
-                shutil.copyfile(Path(cfg.caches_from) / name, out / name)
-
-    rt.on_main(prepare)
+    rt.on_main(lambda: prepare_run_with_caches(out, resume, cfg.caches_from))
     setup_torch(cfg.seed, cfg.threads)
     vae = MotionVAE(base.vae)
     load_weights(vae_dir / "vae.safetensors", vae)

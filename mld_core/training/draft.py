@@ -36,8 +36,7 @@ from mld_core.training import distributed
 from mld_core.training.common import (Budget, balanced_weights, checked_budget, load_train_state, lr_factor,
                                      save_train_state, set_lr, setup_torch)
 from mld_core.training.denoiser import (LATENT_CACHE, TEXT_CACHE, _cached, cached_caption_embeddings, embed_captions,
-                                       encode_latents, text_units)
-from mld_core.training.vae import prepare_run_dir
+                                       encode_latents, prepare_run_with_caches, text_units)
 
 DRAFT_WEIGHTS = "draft.safetensors"
 
@@ -155,14 +154,7 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
     timesteps = draft_timesteps(cfg, LCMScheduler(base.scheduler, cfg.original_steps))  # checked before any work
     start = _starting_draft(cfg.init, base) if cfg.init and not resume else None
     rt = distributed.runtime(cfg.device, cfg.bf16, cfg.fp32, (cfg.batch_size, "batch_size"))  # before any writing
-
-    def prepare():
-        prepare_run_dir(out, resume)
-        for name in (LATENT_CACHE, TEXT_CACHE) if cfg.caches_from and not resume else ():
-            if (Path(cfg.caches_from) / name).is_file():
-                shutil.copyfile(Path(cfg.caches_from) / name, out / name)
-
-    rt.on_main(prepare)
+    rt.on_main(lambda: prepare_run_with_caches(out, resume, cfg.caches_from))
     setup_torch(cfg.seed, cfg.threads)
 
     # 1. Real latents z_0 of the training split and caption embeddings (cached by rank 0; the teacher's VAE and
