@@ -1238,3 +1238,14 @@ def test_caches_from_that_is_not_a_folder_is_refused_before_anything_is_written(
         err = capsys.readouterr().err
         assert f"caches_from: {where} is not a run folder" in err and "Traceback" not in err
         assert not out.exists() and a_file.read_text() == "mine"
+
+
+@pytest.mark.parametrize("stage", ["denoiser", "draft"])
+@pytest.mark.parametrize("setting", [{"caches_from": 5}, {"caches_from": ""}, {"caches_from": ["a"]}])
+def test_a_folder_setting_that_is_not_a_path_is_one_line(folder, tmp_path, capsys, stage, setting):
+    args = ["train", stage, "--data", str(folder), "--out", str(tmp_path / "run"), "--steps", "1",
+            "--config", json.dumps(setting)]
+    assert main(args + (["--vae", str(tmp_path / "vae")] if stage == "denoiser" else [])) == 2
+    err = capsys.readouterr().err
+    assert "caches_from must be a folder's path" in err and "Traceback" not in err
+    assert not (tmp_path / "run").exists()

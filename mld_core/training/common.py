@@ -73,6 +73,13 @@ def checked_label_boost(boost) -> dict | None:
     return {str(label): inputs.number_in_range(f, f"label_boost[{label!r}]", 0.01, 1000.0) for label, f in boost.items()}
 
 
+def checked_folder_setting(value, what: str) -> str | None:
+    """A --config setting naming a folder (``caches_from``, a Draft's ``init``): None, or a non-empty string."""
+    if value is not None and (not isinstance(value, str) or not value.strip()):
+        raise inputs.InputError(f"{what} must be a folder's path, got {value!r}")
+    return value
+
+
 def check_boosted_labels(labels, boost: dict | None) -> None:
     """A label in ``boost`` that no clip of ``labels`` has is an error (a misspelt label would otherwise boost
     nothing)."""

@@ -36,8 +36,9 @@ from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import DDPMScheduler
 from mld_core.training import distributed
 from mld_core.training.common import (Budget, boosted_weights, check_boosted_labels, check_resumed_modules,
-                                     checked_budget, checked_label_boost, checked_module_names, load_train_state,
-                                     lr_factor, save_train_state, set_lr, setup_torch, trainable_parameters)
+                                     checked_budget, checked_folder_setting, checked_label_boost,
+                                     checked_module_names, load_train_state, lr_factor, save_train_state, set_lr,
+                                     setup_torch, trainable_parameters)
 from mld_core.training.vae import GROWTH_NOISE, prepare_run_dir
 from mld_core.training.verb_fold import check_foldable, load_verb_fold
 
@@ -104,6 +105,7 @@ class DenoiserTrainConfig:
             raise ValueError("fold_verb_guide goes with --cond text and --init (a model with a verb denoiser), "
                              "without renormalise_latents or verb_hints")
         self.label_boost = checked_label_boost(self.label_boost)
+        self.caches_from = checked_folder_setting(self.caches_from, "caches_from")
         if isinstance(self.denoiser, dict):
             self.denoiser = DenoiserConfig(**self.denoiser)
 

@@ -33,8 +33,8 @@ from mld_core.models.text_encoder import TextEmbedding
 from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import LCMScheduler
 from mld_core.training import distributed
-from mld_core.training.common import (Budget, balanced_weights, checked_budget, load_train_state, lr_factor,
-                                     save_train_state, set_lr, setup_torch)
+from mld_core.training.common import (Budget, balanced_weights, checked_budget, checked_folder_setting,
+                                     load_train_state, lr_factor, save_train_state, set_lr, setup_torch)
 from mld_core.training.denoiser import (LATENT_CACHE, TEXT_CACHE, _cached, cached_caption_embeddings, embed_captions,
                                        encode_latents, prepare_run_with_caches, text_units)
 
@@ -82,6 +82,8 @@ class DraftTrainConfig:
         for name, lo, hi in (("batch_size", 1, 65536), ("original_steps", 1, 1000), ("crops_per_clip", 1, 1000),
                              ("save_every", 1, 10**9)):
             setattr(self, name, inputs.int_in_range(getattr(self, name), name, lo, hi))
+        self.caches_from = checked_folder_setting(self.caches_from, "caches_from")
+        self.init = checked_folder_setting(self.init, "init")
         self.draft_steps = inputs.int_in_range(self.draft_steps, "draft_steps", 1, self.original_steps)
         self.teacher_steps = inputs.int_in_range(self.teacher_steps, "teacher_steps", 0, self.original_steps - 1)
         for name, lo, hi in (("lr", 1e-12, 1.0), ("ema_decay", 0.0, 0.999999), ("huber_c", 1e-12, 1.0),
