@@ -449,6 +449,11 @@ def test_train_refuses_bad_data_and_settings_and_leaves_no_run_folder(tmp_path, 
     refused([*train, "--config", tmp_path / "list.json"], tmp_path, capsys, "JSON object")
     refused([*train, "--config", tmp_path / "unknown.json"], tmp_path, capsys, "unknown setting")
     refused([*train, "--config", '{"bf16": "false"}'], tmp_path, capsys, "bf16 must be true or false, got 'false'")
+    refused([*train, "--config", '{"init": "default"}'], tmp_path, capsys, "init is set by --init, not in --config")
+    refused(["train", "denoiser", "--data", data, "--vae", "default", "--out", run, "--config",
+             '{"seed": 1, "vae": "x"}'], tmp_path, capsys, "seed, vae are set by --seed, --vae")
+    refused(["train", "draft", "--data", data, "--out", run, "--config", '{"teacher": "default"}'], tmp_path, capsys,
+            "teacher is set by --teacher")
     refused([*train, "--threads", "-1"], tmp_path, capsys, "--threads must be between")
     (tmp_path / "a_file").write_text("x")
     refused(["train", "vae", "--data", data, "--out", tmp_path / "a_file"], tmp_path, capsys, "not a folder")

@@ -82,10 +82,14 @@ def _init_dir(args) -> str | None:
 
 
 def _model_folder(value: str | None, flag: str) -> Path:
-    """A model folder named by ``flag`` (None or "default": the bundled one), checked to hold a config.json."""
-    from mld_core.checkpoint import DEFAULT_MODEL_DIR
+    """A model folder named by ``flag`` (None: the bundled default; or a bundled model's name), checked to hold a
+    config.json."""
+    from mld_core.bundled import UnknownModel, model_folder
 
-    path = DEFAULT_MODEL_DIR if value in (None, "default") else Path(value)
+    try:
+        path = model_folder(value)
+    except UnknownModel as exc:
+        raise UsageError(f"{flag}: {exc}") from None
     if not (path / "config.json").is_file():
         raise UsageError(f"{flag} {path} is not a model folder (no config.json)")
     return path
@@ -104,8 +108,16 @@ def _check_run_options(args) -> None:
             int_in_range(getattr(args, flag), f"--{flag.replace('_', '-')}", 1, 64)
 
 
-def _overrides(args, config_class) -> dict:
-    """--config: a JSON object of the stage config's own fields, written inline or in a file."""
+RUN_FLAGS = {"data": "--data", "out": "--out", "seed": "--seed", "threads": "--threads", "steps": "--steps",
+             "minutes": "--minutes", "device": "--device", "fp32": "--fp32"}  # every stage's own flags
+VAE_FLAGS = {**RUN_FLAGS, "init": "--init"}
+DENOISER_FLAGS = {**VAE_FLAGS, "vae": "--vae", "cond": "--cond"}
+DISTILLATION_FLAGS = {**RUN_FLAGS, "teacher": "--teacher"}
+
+
+def _overrides(args, config_class, flags: dict) -> dict:
+    """--config: a JSON object of the stage config's own fields, written inline or in a file; a field the stage
+    sets from its own flag (``flags``: field -> flag) is refused, naming that flag."""
     if args.config is None:
         return {}
     inline = args.config.lstrip()[:1] in ("{", "[")
@@ -116,6 +128,10 @@ def _overrides(args, config_class) -> dict:
     if unknown:
         raise UsageError(f"--config {args.config}: unknown setting(s) {', '.join(unknown)}; known: "
                          f"{', '.join(sorted(config_class.__dataclass_fields__))}")
+    flagged = [k for k in data if k in flags]
+    if flagged:
+        raise UsageError(f"--config {args.config}: {', '.join(flagged)} {'is' if len(flagged) == 1 else 'are'} set by "
+                         f"{', '.join(flags[k] for k in flagged)}, not in --config")
     switches = [k for k in data if isinstance(config_class.__dataclass_fields__[k].default, bool)]
     try:
         for key in switches:  # "false" or 1 would otherwise read as on
@@ -161,7 +177,7 @@ def run_vae(args) -> int:
 
     _check_run_options(args)
     _check_data(args.data)
-    over = _overrides(args, VAETrainConfig)
+    over = _overrides(args, VAETrainConfig, VAE_FLAGS)
     return _run(train_vae, lambda: _vae_config(args, over), args.out, args.resume, args.device)
 
 
@@ -190,7 +206,7 @@ def run_denoiser(args) -> int:
 
     _check_run_options(args)
     _check_data(args.data)
-    over = _overrides(args, DenoiserTrainConfig)
+    over = _overrides(args, DenoiserTrainConfig, DENOISER_FLAGS)
     return _run(train_denoiser, lambda: _denoiser_config(args, over), args.out, args.resume, args.device)
 
 
@@ -233,7 +249,7 @@ def _run_distillation(args, config_class, train, install, what: str, extra: dict
     _check_run_options(args)
     _check_data(args.data)
     teacher = _model_folder(args.teacher, "--teacher")
-    over = {**_overrides(args, config_class), **(extra or {})}
+    over = {**_overrides(args, config_class, DISTILLATION_FLAGS), **(extra or {})}
     if args.lr is not None:
         over["lr"] = args.lr
 
