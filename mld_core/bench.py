@@ -512,7 +512,7 @@ def register(groups) -> None:
     p = groups["root"].add_parser(
         "bench", help="average inference time per prompt (AITS) and FLOPs; --baseline raw adds raw-motion diffusion",
         description=__doc__.split("\n\n")[1] if __doc__ else None)
-    p.add_argument("--model", default=None, help="model folder (default: the bundled default model)")
+    p.add_argument("--model", default=None, help="model folder or bundled model's name (default: the bundled default)")
     p.add_argument("--baseline", choices=["raw"], default=None,
                    help="also time a raw-motion diffusion baseline (MDM-style DDPM-1000 and DDIM-50)")
     p.add_argument("--prompts", type=int, default=32, help="number of prompts timed (default 32)")

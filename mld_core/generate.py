@@ -340,7 +340,8 @@ def register(groups) -> None:
     p.add_argument("--loop", action="store_true", help="make the last frame continue into the first")
     p.add_argument("--sequence", type=Path, default=None,
                    help='one motion from segments: [{"prompt": "...", "seconds": 3.0}, ...] (docs/control.md)')
-    p.add_argument("--model", type=Path, default=None, help="a model folder (default: the bundled model)")
+    p.add_argument("--model", default=None,
+                   help="a model folder, or a bundled model's name such as v4_preview (default: the bundled default)")
     p.add_argument("--unconditional", action="store_true", help="ignore text: sample the unconditional model")
     p.add_argument("--action", default=None, help="an action label, for action-conditioned models")
     p.add_argument("--out", type=Path, required=True, help="OUT.npz")

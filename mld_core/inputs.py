@@ -250,16 +250,16 @@ class ModelLimits:
 def model_limits(model_dir=None) -> ModelLimits:
     """The limits of ``model_dir`` (None: the bundled model); the defaults when its config cannot be read (loading
     the model reports that problem properly)."""
-    if model_dir is None:
-        model_dir = Path(__file__).resolve().parent / "weights" / "default"
+    from mld_core.bundled import UnknownModel, model_folder
+
     try:
-        data = json.loads((Path(model_dir) / "config.json").read_text(encoding="utf-8"))
+        data = json.loads((model_folder(model_dir) / "config.json").read_text(encoding="utf-8"))
         draft = data.get("draft")
         limits = ModelLimits(int(data.get("fps", MODEL_FPS)), int(data.get("min_frames", 40)),
                              int(data.get("max_frames", 196)),
                              (float(draft.get("guidance_min", 3.0)), float(draft.get("guidance_max", 5.0)))
                              if isinstance(draft, dict) else None)
-    except (OSError, ValueError, TypeError, AttributeError, RecursionError):
+    except (OSError, ValueError, TypeError, AttributeError, RecursionError, UnknownModel):
         return ModelLimits()
     if limits.fps < 1 or not 1 <= limits.min_frames <= limits.max_frames:
         return ModelLimits()

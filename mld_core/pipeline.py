@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from mld_core import inputs
+from mld_core.bundled import UnknownModel, model_folder
 from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, VERB_WEIGHTS, CheckpointError, ModelConfig,
                                  load_config, load_weights)
 from mld_core.condition import content_anchor
@@ -215,10 +216,14 @@ class MLDPipeline:
     @classmethod
     def from_pretrained(cls, path: str | Path | None = None, device: str = "cpu", text_encoder=None,
                         precision: str = "fp32", draft_precision: str = "auto") -> "MLDPipeline":
-        """Load a model folder (None: the bundled default). ``text_encoder`` overrides the one named in config.json.
+        """Load a model folder (None: the bundled default; a bundled model's name, e.g. "v4_preview", names its
+        folder: mld_core.bundled). ``text_encoder`` overrides the one named in config.json.
         ``precision="bf16"`` runs the denoiser in bfloat16: faster on CPUs with native bfloat16 (AVX512-BF16, AMX),
         samples close to but not bit-equal to float32's. ``draft_precision`` is the Draft's (draft_precision_for)."""
-        model_dir = Path(path) if path is not None else DEFAULT_MODEL_DIR
+        try:
+            model_dir = model_folder(path)
+        except UnknownModel as exc:
+            raise CheckpointError(str(exc)) from None
         config = load_config(model_dir)
         vae = MotionVAE(config.vae)
         load_weights(model_dir / "vae.safetensors", vae)

@@ -38,9 +38,12 @@ def shard_lines(total: int, shard: tuple[int, int], what: str = "--shard") -> li
 def model_fingerprint(model_dir) -> str:
     """SHA-256 of what in a model folder (None: the bundled model) shapes a take: its config.json, weights and
     indexes (about 0.1 s for the bundled model); shards of other models, or other weights, differ here."""
-    from mld_core.checkpoint import DEFAULT_MODEL_DIR
+    from mld_core.bundled import UnknownModel, model_folder
 
-    folder = Path(model_dir or DEFAULT_MODEL_DIR)
+    try:
+        folder = model_folder(model_dir)
+    except UnknownModel:  # nothing to fingerprint: loading the model says why
+        folder = Path(model_dir)
     digest = hashlib.sha256()
     for path in sorted(folder.glob("*")):
         if path.is_file() and (path.name == "config.json" or path.suffix in (".safetensors", ".npz")):

@@ -17,16 +17,39 @@ class BeyondModel(ValueError):
     """A prompt the model has not learned, refused under ``strict``."""
 
 
+CLI_PICK = "--model {name}"  # how a user of generate or the batch picks another bundled model
+PANEL_PICK = "choose it as the panel's Model"
+
+
+def other_model_note(coverage: Coverage, model_id: str, pick: str = CLI_PICK) -> str:
+    """'' unless ``coverage`` says the model ``model_id`` has not learned its prompt and the prompt names checked
+    verbs that another bundled model is trained on; then that model and how to ``pick`` it."""
+    from mld_core.bundled import model_for_verbs
+    from mld_core.data.verbs import VERB_SHOWN, verbs_in_order
+
+    verbs = verbs_in_order(coverage.prompt) if coverage.verdict == "unknown" else []
+    name = model_for_verbs(verbs, model_id)
+    if name is None:
+        return ""
+    shown = " and ".join(VERB_SHOWN[v] for v in verbs)
+    return f"the bundled model {name} is trained to make {shown} ({pick.format(name=name)})"
+
+
 def check_prompts(pipe, prompts: Sequence[str], *, strict: bool = False, warn=print) -> list[Coverage]:
-    """Coverage per unique prompt; one warning line per ``unknown`` prompt through ``warn``; under ``strict`` an
-    unknown prompt raises BeyondModel (before anything is generated)."""
+    """Coverage per unique prompt; one warning line per ``unknown`` prompt through ``warn``, followed by a note when
+    another bundled model is trained on the verbs it names; under ``strict`` an unknown prompt raises BeyondModel
+    (before anything is generated)."""
     unique = list(dict.fromkeys(prompts))
     found = {c.prompt: c for c in pipe.coverage(unique)}
     unknown = [found[p] for p in unique if found[p].verdict == "unknown"]
     if strict and unknown:
-        raise BeyondModel(unknown[0].warning() + " (--strict: nothing generated)")
+        note = other_model_note(unknown[0], pipe.model_id)
+        raise BeyondModel(unknown[0].warning() + (f"; {note}" if note else "") + " (--strict: nothing generated)")
     for c in unknown:
         warn(f"warning: {c.warning()}")
+        note = other_model_note(c, pipe.model_id)
+        if note:
+            warn(f"note: {note}")
     return [found[p] for p in prompts]
 
 

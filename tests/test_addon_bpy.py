@@ -367,6 +367,8 @@ def test_batch_script_end_to_end(tmp_path, tiny_dir, capsys):
         (["--prompts", tmp_path / "none.txt", "--out", tmp_path / "x.blend"], "prompt file not found"),
         (["--prompt", "walk", "--out", tmp_path / "x.txt"], "must name a .blend"),
         (["--prompt", "walk", "--out", tmp_path / "x.blend", "--model", tmp_path / "nomodel"], "model folder not found"),
+        (["--prompt", "walk", "--out", tmp_path / "x.blend", "--model", "no_such_model"],
+         "model folder not found: no_such_model (bundled models: default, v4_preview)"),
         (["--out", tmp_path / "x.blend"], "one of the arguments --prompts --prompt --jobs --merge is required"),
     ]
     for extra, words in cases:

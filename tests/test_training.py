@@ -1101,7 +1101,7 @@ def test_export_model_card_says_where_the_model_came_from_and_takes_the_notes_li
 
     model = tiny_model(tmp_path / "tiny")
     config = json.loads((model / "config.json").read_text())
-    config["provenance"]["denoiser_training"] = {"init": "research/v4/text_model"}
+    config["provenance"]["denoiser_training"] = {"init": "mld_core/weights/v4_preview"}
     (model / "config.json").write_text(json.dumps(config))
     notes = tmp_path / "notes.md"
     notes.write_text("## Measurements of this run\nnone\n\n## Limits\nKicks are weak.\n")

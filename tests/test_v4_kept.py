@@ -77,7 +77,7 @@ def test_the_merged_evaluator_is_fp16_and_gives_its_pinned_similarity():
 
 
 def test_the_kept_text_model_is_fp16_generates_and_records_no_machine_path():
-    """research/v4/text_model: a model folder (denoiser + the VAE it trained on + a verb denoiser on its latents) that
+    """mld_core/weights/v4_preview: a model folder (denoiser + the VAE it trained on + a verb denoiser on its latents) that
     generates as it is, in fp16, its card and provenance free of any machine's paths; the verb denoiser guides a
     prompt naming a checked verb and leaves any other as the text denoiser alone makes it."""
     from mld_core.pipeline import MLDPipeline

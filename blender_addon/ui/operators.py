@@ -16,6 +16,7 @@ from bpy.props import BoolProperty, EnumProperty, StringProperty
 from .. import env
 from . import runtime
 from ..scene.key_takes import check_target, settings_of
+from ..worker.model_choice import has_draft, model_dir_for
 from ..worker.validation import RequestError, validate_request
 
 
@@ -39,7 +40,7 @@ def request_from_settings(settings, prefs, target=None):
         settings.steps,
         settings.guidance,
         settings.variants,
-        model_dir=(prefs.model_dir if prefs is not None else "") or env.model_dir_override(),
+        model_dir=model_dir_for(settings, prefs),
         device=prefs.device if prefs is not None else "cpu",
         threads=prefs.threads if prefs is not None else 0,
         draft=getattr(settings, "mode", "FINAL") == "DRAFT",
@@ -118,6 +119,10 @@ def generate_problem(context) -> str:
         return "The add-on is not registered for this scene"
     if not settings.prompt.strip():
         return "Type a prompt first"
+    from .preferences import get_prefs
+
+    if getattr(settings, "mode", "FINAL") == "DRAFT" and not has_draft(model_dir_for(settings, get_prefs(context))):
+        return "This model has no Draft: use Final"
     problem = check_target(resolve_target(context))
     return problem
 

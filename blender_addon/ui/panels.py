@@ -2,12 +2,30 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import bpy
 
 from .. import env
 from . import quality_panel, sequence_panel
 from . import runtime
 from .operators import resolve_target
+
+
+def _draw_model(layout, settings, context) -> None:
+    """The Model choice (or the Preferences' folder that overrides it), and why Draft is off for a model without one."""
+    from ..worker.model_choice import folder_override, has_draft, model_dir_for
+    from .preferences import get_prefs
+
+    prefs = get_prefs(context)
+    override = folder_override(prefs.model_dir if prefs is not None else "", env.model_dir_override())
+    if override is not None:
+        layout.label(text=f"Model: {Path(override).name or override} (set in Preferences)", icon="FILE_FOLDER")
+    else:
+        layout.prop(settings, "model")
+    if settings.mode == "DRAFT" or settings.live_preview:
+        if not has_draft(model_dir_for(settings, prefs)):
+            layout.label(text="This model has no Draft: use Final (Live Preview needs a Draft)", icon="ERROR")
 
 
 class MLD_PT_generate(bpy.types.Panel):
@@ -43,6 +61,7 @@ class MLD_PT_generate(bpy.types.Panel):
         row = col.row(align=True)
         row.prop(settings, "seed")
         row.operator("mld.randomize_seed", text="", icon="FILE_REFRESH")
+        _draw_model(col, settings, context)
         row = col.row(align=True)
         row.prop(settings, "mode", expand=True)
         row = col.row(align=True)

@@ -26,7 +26,8 @@ class MLD_AddonPreferences(bpy.types.AddonPreferences):
 
     model_dir: StringProperty(
         name="Model folder",
-        description="Folder of a trained MLD model (config.json + safetensors); empty uses the bundled default model",
+        description="Folder of a trained MLD model (config.json + safetensors); empty uses the model chosen in the "
+        "panel (a bundled one)",
         subtype="DIR_PATH",
         default="",
         update=_model_dir_changed,

@@ -9,6 +9,7 @@ from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProp
 from mld_core.rig.keying import DEFAULT_TOLERANCE_DEG, MATCH_CHOICES, ROTATION_CHOICES
 
 from . import live_preview, quality_panel
+from ..worker.model_choice import model_items
 from ..worker.validation import MAX_STEPS, MAX_VARIANTS, SEED_MAX, model_limits
 
 _LIMITS = model_limits()  # the bundled model's lengths (config.json only); another model's are checked on Generate
@@ -17,6 +18,13 @@ _LIMITS = model_limits()  # the bundled model's lengths (config.json only); anot
 def _prompt_changed(self, context):
     quality_panel.prompt_changed(self, context)
     live_preview.edited(self, context)
+
+
+_MODEL_ITEMS = model_items()  # kept alive: Blender reads a dynamic enum's strings after the callback returns
+
+
+def _models(self, context):
+    return _MODEL_ITEMS
 
 
 def _setting_changed(self, context):
@@ -65,6 +73,12 @@ class MLD_SceneSettings(bpy.types.PropertyGroup):
     )
     seed: IntProperty(name="Seed", description="Same seed + same settings = same motion", default=0, min=0, max=SEED_MAX,
                       update=_setting_changed)
+    model: EnumProperty(
+        name="Model",
+        description="The bundled model Generate uses (a model folder set in the add-on's Preferences wins over it)",
+        items=_models,
+        update=_prompt_changed,  # coverage and Live Preview read the new model
+    )
     mode: EnumProperty(
         name="Mode",
         description="Draft: a step of the model's distilled denoiser and a guided step of its own, about 10x faster, "

@@ -50,10 +50,25 @@ def set_threads(threads: int) -> None:
             torch.set_num_threads(int(threads))
 
 
+def _folder(model_dir: str) -> Path:
+    """A model folder given by path (``~`` expanded) or by a bundled model's name (mld_core.bundled); the path as
+    given when it is neither."""
+    from mld_core.bundled import UnknownModel, model_folder
+
+    path = Path(os.path.expanduser(str(model_dir)))
+    if path.exists():
+        return path
+    try:
+        return model_folder(str(model_dir))
+    except UnknownModel:
+        return path
+
+
 def default_loader(model_dir: str | None, device: str) -> Any:
-    """Load an MLDPipeline from ``model_dir`` (None: the bundled default) onto ``device``."""
+    """Load an MLDPipeline from ``model_dir`` (None: the bundled default; or a bundled model's name) onto
+    ``device``."""
     if model_dir is not None:
-        path = Path(os.path.expanduser(str(model_dir)))
+        path = _folder(model_dir)
         if not path.exists():
             raise ModelLoadError(f"Model folder not found: {path}")
         if not path.is_dir():
@@ -90,7 +105,7 @@ class PipelineCache:
 
     @staticmethod
     def key(model_dir: str | None, device: str) -> tuple[str | None, str]:
-        folder = str(Path(os.path.expanduser(model_dir)).resolve()) if model_dir else None
+        folder = str(_folder(model_dir).resolve()) if model_dir else None
         return folder, device
 
     def get(self, model_dir: str | None = None, device: str = "cpu", threads: int = 0) -> Any:

@@ -44,7 +44,7 @@ def register(groups) -> None:
                     "(action-to-motion), uncond (unconditional), vae (reconstruction). Prints the table with a "
                     "Real row and writes JSON.")
     e.add_argument("task", choices=["t2m", "a2m", "uncond", "vae"])
-    e.add_argument("--model", default=None, help="model folder (default: the bundled default model)")
+    e.add_argument("--model", default=None, help="model folder or bundled model's name (default: the bundled default)")
     e.add_argument("--data", required=True, help="HumanML3D-format folder")
     e.add_argument("--split", default="test")
     e.add_argument("--evaluator", default=None, help="evaluator folder (default: the bundled evaluator)")

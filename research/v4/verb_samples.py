@@ -1,6 +1,6 @@
 """A model's own takes of the checked verbs, kept only where they show them, as a prepared folder to train on.
 
-    python research/v4/verb_samples.py --data data/bandai_cmu --model research/v4/text_model --out data/verb_samples \
+    python research/v4/verb_samples.py --data data/bandai_cmu --model mld_core/weights/v4_preview --out data/verb_samples \
         [--per-verb 96] [--minutes 60] [--batch 8] [--threads 1]
 
 For each checked verb (mld_core/data/verbs.py), the train clips of ``--data`` labelled with it whose captions name it

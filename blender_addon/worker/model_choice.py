@@ -1,0 +1,70 @@
+"""Which model Generate uses: the Preferences' model folder (or ``MLD_MODEL_DIR``) when one is set, else the bundled
+model chosen in the panel (mld_core.bundled). No bpy here: the panel, the operators and the coverage watcher read it."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+from mld_core.bundled import DEFAULT_NAME, WEIGHTS_DIR, UnknownModel, bundled_models, model_folder, model_id_in
+from mld_core.inputs import model_limits
+
+
+def model_items() -> list[tuple[str, str, str]]:
+    """The panel's Model choices, (name, label, tooltip) per bundled model, the default first."""
+    items = []
+    for name, model_id in bundled_models().items():
+        tip = f"The bundled model {model_id} (mld_core/weights/{name}; its MODEL_CARD.md says what it makes)"
+        items.append((name, model_id, tip + (", the default" if name == DEFAULT_NAME else "")))
+    return items or [(DEFAULT_NAME, "default", "The bundled default model")]
+
+
+def folder_override(prefs_dir: str | None, env_dir: str | None) -> str | None:
+    """The model folder set outside the panel (the Preferences' folder, else ``MLD_MODEL_DIR``), or None."""
+    for value in (prefs_dir, env_dir):
+        if value and str(value).strip():
+            return str(value).strip()
+    return None
+
+
+def chosen_model_dir(choice: str | None, prefs_dir: str | None = None, env_dir: str | None = None) -> str | None:
+    """The model folder for a request: a folder set outside the panel wins; else the panel's bundled ``choice``'s
+    folder (None for the default, or for a name no longer bundled, which loads the default)."""
+    override = folder_override(prefs_dir, env_dir)
+    if override is not None:
+        return override
+    if not choice or choice == DEFAULT_NAME:
+        return None
+    return str(WEIGHTS_DIR / choice) if choice in bundled_models() else None
+
+
+def model_dir_for(settings, prefs) -> str | None:
+    """The model folder Generate uses for the panel's ``settings`` and the add-on's preferences ``prefs`` (None:
+    none set): chosen_model_dir with ``MLD_MODEL_DIR`` from the environment."""
+    from ..env import model_dir_override
+
+    return chosen_model_dir(getattr(settings, "model", None), getattr(prefs, "model_dir", "") if prefs else "",
+                            model_dir_override())
+
+
+def has_draft(model_dir: str | None) -> bool:
+    """Whether a model folder (None: the bundled default) has a Draft denoiser (Draft mode, Live Preview)."""
+    return model_limits(model_dir).draft_guidance is not None
+
+
+@lru_cache(maxsize=64)
+def other_model_line(prompt: str, verdict: str, model_dir: str | None, overridden: bool) -> str:
+    """The panel's line under an ``unknown`` verdict when another bundled model is trained on the prompt's verbs
+    ('' otherwise); ``overridden``: a Preferences folder is in use, which must be cleared first."""
+    from mld_core.condition.coverage import Coverage
+    from mld_core.take_report import PANEL_PICK, other_model_note
+
+    pick = ("clear the Preferences' model folder, then " if overridden else "") + PANEL_PICK
+    return other_model_note(Coverage(prompt, 0.0, verdict), model_id_of(model_dir), pick)
+
+
+def model_id_of(model_dir: str | None) -> str:
+    """The model id in a model folder's config.json (None: the bundled default); '' when it cannot be read."""
+    try:
+        return model_id_in(model_folder(model_dir)) or ""
+    except UnknownModel:
+        return ""

@@ -1,0 +1,79 @@
+"""The panel's Model: the bundled models to choose from, the choice reaching Generate's request and the coverage
+check, a folder set in the Preferences winning over it, and why Draft is off for a model without one (bpy in a
+subprocess; nothing is generated)."""
+
+from __future__ import annotations
+
+import pytest
+
+from bpy_util import REPO, requires_bpy, run_bpy_script
+
+pytestmark = [pytest.mark.bpy, requires_bpy]
+
+SCRIPT = r"""
+import sys
+sys.path.insert(0, {repo!r})
+sys.path.insert(0, {tests!r})
+import bpy, addon_utils
+bpy.ops.wm.read_factory_settings(use_empty=True)
+addon_utils.enable("blender_addon", default_set=True)
+from blender_addon.ui import operators, panels
+from blender_addon.ui import quality_panel as quality_ui
+from recording_layout import Host, Layout
+
+ctx = bpy.context
+s = ctx.scene.mld_motion
+out = {{"start": s.model}}
+
+def drawn():
+    Layout.calls.clear()
+    panels.MLD_PT_generate.draw(Host(), ctx)
+    return [list(c) for c in Layout.calls]
+
+for model in ("default", "v4_preview"):
+    s.model = model
+    out[model] = {{"request": operators.request_from_settings(s, None).model_dir, "key": quality_ui._model_key(ctx)[0],
+                   "final": drawn(), "final_problem": operators.generate_problem(ctx)}}
+    s.mode = "DRAFT"
+    out[model].update(draft=drawn(), draft_problem=operators.generate_problem(ctx))
+    s.mode = "FINAL"
+try:
+    s.model = "no_such_model"
+    out["bad"] = "accepted"
+except TypeError as exc:
+    out["bad"] = str(exc)
+emit(out)
+"""
+
+
+def _labels(calls):
+    return [c[1] for c in calls if c[0] == "label"]
+
+
+def test_the_panel_chooses_a_bundled_model_and_says_when_it_has_no_draft(tmp_path):
+    r = run_bpy_script(SCRIPT.format(repo=str(REPO), tests=str(REPO / "tests")), tmp_path, timeout=120,
+                       MLD_MODEL_DIR="")
+    no_draft = "This model has no Draft: use Final (Live Preview needs a Draft)"
+    assert r["start"] == "default"
+    assert r["default"]["request"] is None and r["default"]["key"] is None  # the bundled default, as before
+    assert ["prop", "model"] in r["default"]["final"] and no_draft not in _labels(r["default"]["draft"])
+    preview = r["v4_preview"]
+    assert preview["request"] == str(REPO / "mld_core" / "weights" / "v4_preview") == preview["key"]
+    assert no_draft in _labels(preview["draft"]) and no_draft not in _labels(preview["final"])
+    # Generate's poll says why it is off in Draft (the armature comes next), and not in Final
+    assert preview["draft_problem"] == "This model has no Draft: use Final"
+    assert r["default"]["draft_problem"] == preview["final_problem"] != preview["draft_problem"]
+    assert "no_such_model" in r["bad"]
+
+
+def test_a_folder_set_outside_the_panel_wins_and_is_named(tmp_path):
+    from mld_core.testing import tiny_model
+
+    model = tiny_model(tmp_path / "studio_model")
+    r = run_bpy_script(SCRIPT.format(repo=str(REPO), tests=str(REPO / "tests")), tmp_path, timeout=120,
+                       MLD_MODEL_DIR=str(model))
+    for choice in ("default", "v4_preview"):
+        assert r[choice]["request"] == str(model) == r[choice]["key"]
+        assert ["prop", "model"] not in r[choice]["final"]
+        assert "Model: studio_model (set in Preferences)" in _labels(r[choice]["final"])
+    assert "This model has no Draft: use Final (Live Preview needs a Draft)" in _labels(r["default"]["draft"])
