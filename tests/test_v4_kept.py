@@ -82,7 +82,7 @@ def test_the_kept_text_model_is_fp16_generates_and_records_no_machine_path():
     prompt naming a checked verb and leaves any other as the text denoiser alone makes it."""
     from mld_core.pipeline import MLDPipeline
 
-    folder = V4 / "text_model"
+    folder = V4.parents[1] / "mld_core" / "weights" / "v4_preview"
     for name in ("denoiser.safetensors", "vae.safetensors", "verb_denoiser.safetensors"):
         assert {v.dtype for v in load_file(str(folder / name)).values()} == {torch.float16}
     card, config = (folder / "MODEL_CARD.md").read_text(), (folder / "config.json").read_text()
