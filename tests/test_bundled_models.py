@@ -80,13 +80,16 @@ def test_loading_or_generating_from_an_unknown_model_is_one_line(tmp_path, capsy
     assert "Traceback" not in err and not out.exists()
 
 
-def test_training_takes_a_bundled_name_for_init(weights, capsys):
-    from mld_core.training.cli import UsageError, _model_folder
+def test_training_takes_a_bundled_name_for_init_and_vae(weights, capsys):
+    from mld_core.training.cli import UsageError, _model_folder, _vae_dir
 
     assert _model_folder("verbs", "--init") == weights / "verbs"
     assert _model_folder(None, "--init") == weights / "default"
     with pytest.raises(UsageError, match="^--init: model folder not found: nope"):
         _model_folder("nope", "--init")
+    assert _vae_dir("verbs") == str(weights / "verbs") and _vae_dir("runs/vae") == "runs/vae"
+    with pytest.raises(UsageError, match="^--vae: model folder not found: nope"):
+        _vae_dir("nope")
 
 
 def test_model_for_verbs_needs_another_model_trained_on_every_verb(weights):

@@ -81,6 +81,16 @@ def _init_dir(args) -> str | None:
     return None if args.init is None else str(_model_folder(args.init, "--init"))
 
 
+def _vae_dir(value: str) -> str:
+    """--vae: a VAE run or model folder, or a bundled model's name (its VAE)."""
+    from mld_core.bundled import UnknownModel, model_folder
+
+    try:
+        return str(model_folder(value))
+    except UnknownModel as exc:
+        raise UsageError(f"--vae: {exc}") from None
+
+
 def _model_folder(value: str | None, flag: str) -> Path:
     """A model folder named by ``flag`` (None: the bundled default; or a bundled model's name), checked to hold a
     config.json."""
@@ -220,7 +230,7 @@ def _denoiser_config(args, over: dict):
     if args.layers or args.no_skip or args.cross_attention:
         den.transformer = TransformerConfig(**{**den.transformer.to_dict(), "layers": args.layers or den.transformer.layers,
                                                "skip": not args.no_skip, "cross_attention": args.cross_attention})
-    cfg = DenoiserTrainConfig(data=args.data, vae=str(args.vae), out=str(args.out), cond=args.cond, seed=args.seed,
+    cfg = DenoiserTrainConfig(data=args.data, vae=_vae_dir(args.vae), out=str(args.out), cond=args.cond, seed=args.seed,
                               threads=args.threads, steps=args.steps, minutes=args.minutes, denoiser=den,
                               init=_init_dir(args), **_where(args), **over)
     if args.lr:
@@ -285,7 +295,7 @@ def register(groups) -> None:
     p.set_defaults(func=run_vae)
     p = groups["train"].add_parser("denoiser", help="stage 2: the latent denoiser on frozen-encoder latents")
     _common(p)
-    p.add_argument("--vae", required=True, help="the stage-1 run folder")
+    p.add_argument("--vae", required=True, help="the stage-1 run folder (or a model folder, or a bundled model's name)")
     p.add_argument("--cond", choices=("text", "action", "none"), default="text")
     p.add_argument("--cross-attention", action="store_true", help="condition through cross-attention, not concatenation")
     p.set_defaults(func=run_denoiser)
