@@ -4,8 +4,8 @@
     model_folder("v4_preview")   # a bundled model by its name
     model_folder("runs/mine")    # any model folder by its path
 
-A path that is a folder always wins over a bundled name, so a folder of one's own called ``default`` is read as that
-folder when it is given as ``./default``.
+A folder wins over a bundled name: with a folder called ``default`` in the working directory, ``default`` names that
+folder (the bundled default is then named by None or "").
 """
 
 from __future__ import annotations
@@ -15,22 +15,26 @@ from pathlib import Path
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_NAME = "default"
-MODEL_FORMAT = "mld-core-model"  # config.json's "format" (mld_core.checkpoint.FORMAT)
+MODEL_FORMAT = "mld-core-model"  # config.json's "format" (mld_core.checkpoint.FORMAT is this)
 
 
 class UnknownModel(ValueError):
     """A model named by neither a folder nor a bundled model's name."""
 
 
-def model_id_in(folder: Path) -> str | None:
-    """The model id in a model folder's config.json; None when it is not a generation model's."""
+def _generation_config(folder: Path) -> dict | None:
+    """A folder's config.json when it is a generation model's; None otherwise (missing, unreadable, an evaluator's)."""
     try:
         data = json.loads((folder / "config.json").read_text(encoding="utf-8"))
     except (OSError, ValueError, RecursionError):
         return None
-    if not isinstance(data, dict) or data.get("format") != MODEL_FORMAT:
-        return None
-    return str(data.get("model_id") or folder.name)
+    return data if isinstance(data, dict) and data.get("format") == MODEL_FORMAT else None
+
+
+def model_id_in(folder: Path) -> str | None:
+    """The model id in a model folder's config.json; None when it is not a generation model's."""
+    data = _generation_config(folder)
+    return None if data is None else str(data.get("model_id") or folder.name)
 
 
 def bundled_models() -> dict[str, str]:
@@ -65,11 +69,8 @@ def model_folder(value: str | Path | None) -> Path:
 def verb_labels(name: str) -> set[str]:
     """The labels a bundled model's verb guidance was trained on (config.json's ``verb_guide.actions``; empty when
     it has none)."""
-    try:
-        data = json.loads((WEIGHTS_DIR / name / "config.json").read_text(encoding="utf-8"))
-        actions = (data.get("verb_guide") or {}).get("actions") or []
-    except (OSError, ValueError, RecursionError, AttributeError):
-        return set()
+    guide = (_generation_config(WEIGHTS_DIR / name) or {}).get("verb_guide")
+    actions = guide.get("actions") if isinstance(guide, dict) else None
     return {str(a) for a in actions} if isinstance(actions, list) else set()
 
 

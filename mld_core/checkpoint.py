@@ -14,7 +14,7 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from mld_core.bundled import DEFAULT_NAME, WEIGHTS_DIR
+from mld_core.bundled import DEFAULT_NAME, MODEL_FORMAT, WEIGHTS_DIR
 from mld_core.condition import side_contrast
 from mld_core.condition.content_anchor import ContentAnchorConfig
 from mld_core.fileio import atomic_write
@@ -25,7 +25,7 @@ from mld_core.take_fixes.repair import RepairConfig
 from mld_core.schedulers import LCMScheduler, SchedulerConfig
 from mld_core.take_fixes.stepping import SteppingConfig
 
-FORMAT = "mld-core-model"
+FORMAT = MODEL_FORMAT
 FORMAT_VERSION = 1
 DEFAULT_MODEL_DIR = WEIGHTS_DIR / DEFAULT_NAME
 PROJECT_ROOT = DEFAULT_MODEL_DIR.parents[2]  # the checkout that holds mld_core

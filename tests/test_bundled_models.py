@@ -90,6 +90,8 @@ def test_training_takes_a_bundled_name_for_init_and_vae(weights, capsys):
     assert _vae_dir("verbs") == str(weights / "verbs") and _vae_dir("runs/vae") == "runs/vae"
     with pytest.raises(UsageError, match="^--vae: model folder not found: nope"):
         _vae_dir("nope")
+    with pytest.raises(UsageError, match="^--vae is empty"):
+        _vae_dir("  ")
 
 
 def test_model_for_verbs_needs_another_model_trained_on_every_verb(weights):
@@ -136,9 +138,9 @@ def test_the_panel_choice_yields_to_a_folder_set_outside_the_panel(weights):
     assert chosen_model_dir("default") is None and chosen_model_dir(None) is None
     assert chosen_model_dir("verbs") == str(weights / "verbs")
     assert chosen_model_dir("gone") is None  # a choice saved in a .blend that is no longer bundled: the default
-    assert chosen_model_dir("verbs", " /studio/model ", "/env/model") == "/studio/model"
-    assert chosen_model_dir("verbs", "", "/env/model") == "/env/model"
-    assert folder_override("  ", None) is None
+    assert chosen_model_dir("verbs", "/studio/model") == "/studio/model"
+    assert folder_override(" /studio/model ", "/env/model") == "/studio/model"
+    assert folder_override("", "/env/model") == "/env/model" and folder_override("  ", None) is None
 
 
 def test_the_panel_knows_which_models_have_a_draft_and_notes_the_verb_model():

@@ -10,7 +10,7 @@ from __future__ import annotations
 import bpy
 
 from ..worker.coverage_watch import CoverageWatcher, badge_lines, coverage_line
-from ..worker.model_choice import other_model_line
+from ..worker.model_choice import folder_override_for, other_model_line
 from ..env import missing_modules
 
 POLL_S = 0.1
@@ -26,16 +26,6 @@ def _model_key(context) -> tuple:
     prefs = get_prefs(context)
     model_dir = model_dir_for(getattr(context.scene, "mld_motion", None), prefs)
     return model_dir, prefs.device if prefs is not None else "cpu", prefs.threads if prefs is not None else 0
-
-
-def _folder_in_preferences(context) -> bool:
-    """Whether a model folder set outside the panel (Preferences, MLD_MODEL_DIR) overrides its Model choice."""
-    from ..env import model_dir_override
-    from ..worker.model_choice import folder_override
-    from .preferences import get_prefs
-
-    prefs = get_prefs(context)
-    return folder_override(prefs.model_dir if prefs is not None else "", model_dir_override()) is not None
 
 
 def _check(text: str, key: tuple):
@@ -88,7 +78,10 @@ def draw_coverage(layout, settings, context) -> None:
         row = layout.row()
         row.alert = cov.verdict == "unknown"
         row.label(text=line[1], icon=line[0])
-    other = other_model_line(text, cov.verdict, key[0], _folder_in_preferences(context)) if line else ""
+    from .preferences import get_prefs
+
+    overridden = folder_override_for(get_prefs(context)) is not None
+    other = other_model_line(text, cov.verdict, key[0], overridden) if line else ""
     if other:
         layout.label(text=other[0].upper() + other[1:], icon="INFO")
 

@@ -26,10 +26,10 @@ def folder_override(prefs_dir: str | None, env_dir: str | None) -> str | None:
     return None
 
 
-def chosen_model_dir(choice: str | None, prefs_dir: str | None = None, env_dir: str | None = None) -> str | None:
-    """The model folder for a request: a folder set outside the panel wins; else the panel's bundled ``choice``'s
-    folder (None for the default, or for a name no longer bundled, which loads the default)."""
-    override = folder_override(prefs_dir, env_dir)
+def chosen_model_dir(choice: str | None, override: str | None = None) -> str | None:
+    """The model folder for a request: ``override``, a folder set outside the panel (folder_override), wins; else
+    the panel's bundled ``choice``'s folder (None for the default, or for a name no longer bundled, which loads the
+    default)."""
     if override is not None:
         return override
     if not choice or choice == DEFAULT_NAME:
@@ -37,13 +37,17 @@ def chosen_model_dir(choice: str | None, prefs_dir: str | None = None, env_dir: 
     return str(WEIGHTS_DIR / choice) if choice in bundled_models() else None
 
 
-def model_dir_for(settings, prefs) -> str | None:
-    """The model folder Generate uses for the panel's ``settings`` and the add-on's preferences ``prefs`` (None:
-    none set): chosen_model_dir with ``MLD_MODEL_DIR`` from the environment."""
+def folder_override_for(prefs) -> str | None:
+    """folder_override of the add-on's preferences ``prefs`` (None: none set) and ``MLD_MODEL_DIR``."""
     from ..env import model_dir_override
 
-    return chosen_model_dir(getattr(settings, "model", None), getattr(prefs, "model_dir", "") if prefs else "",
-                            model_dir_override())
+    return folder_override(getattr(prefs, "model_dir", "") if prefs else "", model_dir_override())
+
+
+def model_dir_for(settings, prefs) -> str | None:
+    """The model folder Generate uses for the panel's ``settings`` and the add-on's preferences ``prefs`` (None:
+    none set)."""
+    return chosen_model_dir(getattr(settings, "model", None), folder_override_for(prefs))
 
 
 def has_draft(model_dir: str | None) -> bool:

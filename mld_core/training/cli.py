@@ -85,6 +85,8 @@ def _vae_dir(value: str) -> str:
     """--vae: a VAE run or model folder, or a bundled model's name (its VAE)."""
     from mld_core.bundled import UnknownModel, model_folder
 
+    if not str(value).strip():  # an empty --vae is a mistake, not the bundled default
+        raise UsageError("--vae is empty: give a VAE run folder, a model folder or a bundled model's name")
     try:
         return str(model_folder(value))
     except UnknownModel as exc:
