@@ -69,6 +69,7 @@ def _addon_package():
 _addon_package()  # puts mld_core (the vendored copy or the checkout) on sys.path
 from mld_core import inputs, shards  # noqa: E402
 from mld_core.bundled import UnknownModel, model_folder  # noqa: E402
+from mld_core.model_route import is_auto, route_line  # noqa: E402
 from mld_core.fileio import OutputSet  # noqa: E402
 from mld_core.take_report import other_model_note, seam_lines, side_report  # noqa: E402
 
@@ -108,8 +109,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "is drawn again from its seed, at most N times (default: the model's; 0: never)")
     parser.add_argument("--draft", action="store_true",
                         help="Draft mode: the model's distilled denoiser and a guided step of its own (about 10x faster)")
-    parser.add_argument("--model", metavar="DIR", help="model folder, or a bundled model's name, e.g. v4_preview "
-                        "(default: the bundled default model)")
+    parser.add_argument("--model", metavar="DIR", help="model folder, a bundled model's name, e.g. v4_preview, or "
+                        "auto: each line by the bundled model that makes it (default: the bundled default model)")
     parser.add_argument("--device", default="cpu", help="cpu, cuda, mps or auto (cpu)")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
     parser.add_argument("--fps", type=float, default=None,
@@ -417,7 +418,7 @@ def checked_inputs(args, addon) -> _Inputs:
     batchfile = importlib.import_module(f"{addon.__name__}.worker.batchfile")
     env = importlib.import_module(f"{addon.__name__}.env")
     model_dir = args.model or env.model_dir_override()
-    if model_dir:
+    if model_dir and not is_auto(model_dir):
         try:  # a folder, or a bundled model's name (mld_core.bundled), recorded as given
             folder = model_folder(model_dir)
         except UnknownModel as exc:
@@ -474,13 +475,14 @@ def run(args) -> int:
     # 3. Model (once), then one take per line.
     model_cache = importlib.import_module(f"{addon.__name__}.worker.model_cache")
     t0 = time.perf_counter()
-    pipe = model_cache.PipelineCache().get(inp.model_dir, args.device, args.threads)
+    cache = model_cache.PipelineCache()
+    pipe = cache.get(None if is_auto(inp.model_dir) else inp.model_dir, args.device, args.threads)  # Auto: default
     load_s = time.perf_counter() - t0
     if args.draft and getattr(pipe, "draft_denoiser", None) is None:
         raise BatchError(f"--draft: the model {getattr(pipe, 'model_id', '?')} has no Draft denoiser "
                          "(make one with `python -m mld_core train draft`)")
     print(f"model {getattr(pipe, 'model_id', '?')} loaded in {load_s:.2f} s")
-    records, bvh_takes = key_every_line(args, addon, inp, pipe, scene, obj)
+    records, bvh_takes = key_every_line(args, addon, inp, pipe, scene, obj, cache)
     export = None
     if inp.export is not None:  # the files checked again under the takes' real names, then written with the others
         names = [record["name"] for record in records]
@@ -500,10 +502,12 @@ def run(args) -> int:
     return EXIT_OK
 
 
-def key_every_line(args, addon, inp: _Inputs, pipe, scene, obj) -> tuple[list, list]:
+def key_every_line(args, addon, inp: _Inputs, pipe, scene, obj, cache=None) -> tuple[list, list]:
     """3. One take per prompt line, keyed as its own Action (the first assigned); (manifest records, BVHs to
-    write)."""
+    write). Under --model auto each line goes to the bundled model that makes it (``cache`` keeps them)."""
     generation = importlib.import_module(f"{addon.__name__}.worker.generation")
+    model_choice = importlib.import_module(f"{addon.__name__}.worker.model_choice")
+    default = pipe
     key_takes = importlib.import_module(f"{addon.__name__}.scene.key_takes")
     min_s, max_s = getattr(pipe, "min_seconds", None), getattr(pipe, "max_seconds", None)
     records, bvh_takes = [], []
@@ -511,6 +515,8 @@ def key_every_line(args, addon, inp: _Inputs, pipe, scene, obj) -> tuple[list, l
         if min_s is not None and not (min_s - 1e-6 <= request.seconds <= max_s + 1e-6):
             raise BatchError(f"line {line.line}: this model makes {min_s:g} to {max_s:g} s, got {request.seconds:g}")
         t0 = time.perf_counter()
+        if is_auto(request.model_dir):
+            pipe = _routed_pipe(model_choice, cache, request, line, default)
         result = generation.generate(pipe, request)
         report = key_takes.apply_result(obj, result, scene, exact=not args.no_exact, assign=index == 0,
                                         options=inp.retarget, bone_map=inp.bone_map)
@@ -548,6 +554,20 @@ def key_every_line(args, addon, inp: _Inputs, pipe, scene, obj) -> tuple[list, l
         print(f"[{index + 1}/{len(inp.requests)}] {take.name}: {take.frames} frames ({request.seconds:g} s) in "
               f"{record['time_s']:.2f} s")
     return records, bvh_takes
+
+
+def _routed_pipe(model_choice, cache, request, line, default):
+    """The pipeline Auto chose for a line, said on stderr when it is not the default."""
+    try:
+        pipe = model_choice.pipe_for_request(cache, request)
+    except ValueError as exc:  # a Draft asked of a model without one
+        raise BatchError(f"line {line.line}: {exc}") from None
+    if pipe is not default:
+        prompts = [p for p, _ in request.extra.get("sequence") or [(request.prompt, 0)]]
+        for coverage in default.coverage(prompts):
+            if route_line(coverage):
+                print(f"note: line {line.line}: {route_line(coverage)}", file=sys.stderr)
+    return pipe
 
 
 def write_outputs(args, addon, paths: dict, scene, obj, manifest: dict, bvh_takes: list, t_start: float,
@@ -602,7 +622,7 @@ def _manifest(args, paths, obj, map_source, pipe, model_dir, retarget, scene, re
         "armature": obj.name,
         "rig": {"blend": args.rig or "", "bvh": args.bvh_rig or "", "bone_map_file": args.bone_map or "",
                 "bone_map": map_source},
-        "model_id": getattr(pipe, "model_id", ""),
+        "model_id": "auto" if is_auto(model_dir) else getattr(pipe, "model_id", ""),  # Auto: each record's own
         "model_dir": model_dir or "",
         "addon_version": env.ADDON_VERSION_STRING,
         "settings": {

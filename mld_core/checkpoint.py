@@ -69,6 +69,8 @@ class DraftConfig:
     #                                 MiniLM (draft_text.safetensors; mld_core.training.draft_text); None: all of it
     timesteps: list | None = None  # the timesteps of its num_inference_steps steps, points of the grid (descending);
     #                                None: spread evenly. With a teacher step, the last is where the teacher takes over
+    teacher_verb_guide: bool = False  # the teacher steps carry the verb denoiser's term too (config verb_guide), at
+    #                                   its scale x teacher_guidance / the model's guidance_scale
 
     def __post_init__(self):
         if isinstance(self.denoiser, dict):

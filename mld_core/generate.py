@@ -162,17 +162,35 @@ def _checked_args(args) -> tuple[list[PromptLine], list[float], object]:
     return lines, seconds, constraints
 
 
-def _load(args):
+def _load(args, model=None):
     from mld_core.checkpoint import CheckpointError
     from mld_core.pipeline import MLDPipeline
 
     try:
-        return MLDPipeline.from_pretrained(args.model, precision=args.precision, draft_precision=args.draft_precision,
-                                           device=args.device)
+        return MLDPipeline.from_pretrained(args.model if model is None else model, precision=args.precision,
+                                           draft_precision=args.draft_precision, device=args.device)
     except CheckpointError as exc:
         raise InputError(str(exc)) from None
     except ImportError as exc:
         raise InputError(f"missing dependency: {exc}") from None
+
+
+def _load_routed(args, lines):
+    """--model auto: the bundled model the prompts go to (mld_core.model_route), said on stderr when it is not the
+    default; the default for --unconditional and --action, which read no prompt."""
+    from mld_core.bundled import DEFAULT_NAME
+    from mld_core.model_route import ModelRouter, route_line
+
+    router = ModelRouter(lambda name: _load(args, name))
+    if args.unconditional or args.action:
+        return router.pipe(DEFAULT_NAME)
+    prompts = [line.text for line in lines]
+    name, pipe = router.pipe_for(prompts, one_motion=args.sequence is not None)
+    for c in router.pipe(DEFAULT_NAME).coverage(list(dict.fromkeys(prompts))):
+        line = route_line(c) if name != DEFAULT_NAME else ""
+        if line:
+            print(line, file=sys.stderr)
+    return pipe
 
 
 def _warn_long_prompts(encoder, lines) -> None:
@@ -213,8 +231,10 @@ def _run(args, take_report) -> int:
         import torch
 
         torch.set_num_threads(args.threads)
-    # 2. The model, and what it can be asked.
-    pipe = _load(args)
+    # 2. The model (--model auto: the one the prompts go to), and what it can be asked.
+    from mld_core.model_route import is_auto
+
+    pipe = _load_routed(args, lines) if is_auto(args.model) else _load(args)
     if args.draft and pipe.draft_denoiser is None:
         raise InputError(f"--draft: {pipe.draft_problem}" if pipe.draft_problem else
                          f"--draft: the model {pipe.model_id} has no Draft denoiser (make one with "
@@ -341,7 +361,8 @@ def register(groups) -> None:
     p.add_argument("--sequence", type=Path, default=None,
                    help='one motion from segments: [{"prompt": "...", "seconds": 3.0}, ...] (docs/control.md)')
     p.add_argument("--model", default=None,
-                   help="a model folder, or a bundled model's name such as v4_preview (default: the bundled default)")
+                   help="a model folder, a bundled model's name such as v4_preview, or auto: the bundled model that makes "
+                        "each prompt (default: the bundled default)")
     p.add_argument("--unconditional", action="store_true", help="ignore text: sample the unconditional model")
     p.add_argument("--action", default=None, help="an action label, for action-conditioned models")
     p.add_argument("--out", type=Path, required=True, help="OUT.npz")

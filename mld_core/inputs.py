@@ -251,7 +251,10 @@ def model_limits(model_dir=None) -> ModelLimits:
     """The limits of ``model_dir`` (None: the bundled model); the defaults when its config cannot be read (loading
     the model reports that problem properly)."""
     from mld_core.bundled import UnknownModel, model_folder
+    from mld_core.model_route import is_auto
 
+    if is_auto(model_dir):  # the bundled models share the default's lengths
+        model_dir = None
     try:
         data = json.loads((model_folder(model_dir) / "config.json").read_text(encoding="utf-8"))
         draft = data.get("draft")

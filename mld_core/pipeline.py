@@ -518,12 +518,17 @@ class MLDPipeline:
         own = self.config.draft
         self.draft_scheduler.set_timesteps(call.steps, own.timesteps if call.steps == own.num_inference_steps else None)
         t_s = own.teacher_guidance if own.teacher_guidance is not None else call.guidance
+        teacher_scale = t_s if t_s != 1.0 and guided else None
+        verb = None
+        if own.teacher_verb_guide and call.teacher_steps and teacher_scale is not None and self.verb_guide is not None:
+            verb = self._verb_guidance(call, self.verb_guide.scale * teacher_scale / self.config.guidance_scale)
         return DraftSampler(self.draft_denoiser, self.draft_scheduler, conditions, call.lengths,
-                            call.guidance if guided else 1.0, generators, self.draft_teacher,
-                            t_s if t_s != 1.0 and guided else None, call.teacher_steps)
+                            call.guidance if guided else 1.0, generators, self.draft_teacher, teacher_scale,
+                            call.teacher_steps, verb)
 
-    def _verb_guidance(self, call: _Call) -> VerbGuidance | None:
-        """The verb denoiser's term on the rows whose prompt names one of its labels (None: no such row)."""
+    def _verb_guidance(self, call: _Call, scale: float | None = None) -> VerbGuidance | None:
+        """The verb denoiser's term on the rows whose prompt names one of its labels, at ``scale`` (default: its
+        own; None: no such row)."""
         guide = self.verb_guide
         if guide is None or not guide.scale or call.cond_kind != "text":
             return None
@@ -531,7 +536,8 @@ class MLDPipeline:
         if not len(rows):
             return None
         cond = guide.denoiser.condition_tokens(len(rows), actions=labels)
-        return VerbGuidance(guide.denoiser, rows, cond, guide.denoiser.null_tokens(len(rows)), guide.scale)
+        return VerbGuidance(guide.denoiser, rows, cond, guide.denoiser.null_tokens(len(rows)),
+                            guide.scale if scale is None else scale)
 
     def _redraw(self, call: _Call, kwargs: dict, rows: list, draw: int) -> MLDOutput:
         """Rows ``rows`` of ``call`` made again from draw ``draw`` of their seeds, as they were first made but without

@@ -115,7 +115,8 @@ class FinalSampler:
 @dataclass
 class DraftSampler:
     """Consistency steps of the Draft ``denoiser`` (``guidance`` its input s), re-noised from the rows' own
-    ``generators``; the last ``teacher_steps`` are DDIM steps of ``teacher`` guided with ``teacher_scale``."""
+    ``generators``; the last ``teacher_steps`` are DDIM steps of ``teacher`` guided with ``teacher_scale``, and on
+    some rows by a verb denoiser too (``verb``)."""
 
     denoiser: LatentDenoiser
     scheduler: object  # mld_core.schedulers.LCMScheduler
@@ -126,6 +127,7 @@ class DraftSampler:
     teacher: LatentDenoiser | None = None
     teacher_scale: float | None = None
     teacher_steps: int = 0
+    verb: VerbGuidance | None = None  # added to the teacher steps' noise on its rows
 
     @property
     def timesteps(self):
@@ -136,6 +138,8 @@ class DraftSampler:
         total, c = len(self.timesteps), self.conditions
         if k >= total - self.teacher_steps:  # a guided DDIM step of its teacher (config draft.teacher_guidance)
             eps = guided_eps(self.teacher, z, t, c.teacher_cond, c.teacher_null, self.lengths, self.teacher_scale)
+            if self.verb is not None:
+                eps = self.verb.add_to(eps, z, t, self.lengths)
             return self.scheduler.ddim_step(eps, t, self.scheduler.next_timestep(t), z)
         dtype = self.denoiser.latent_in.weight.dtype
         B = len(z)

@@ -38,8 +38,12 @@ def shard_lines(total: int, shard: tuple[int, int], what: str = "--shard") -> li
 def model_fingerprint(model_dir) -> str:
     """SHA-256 of what in a model folder (None: the bundled model) shapes a take: its config.json, weights and
     indexes (about 0.1 s for the bundled model); shards of other models, or other weights, differ here."""
-    from mld_core.bundled import UnknownModel, model_folder
+    from mld_core.bundled import WEIGHTS_DIR, UnknownModel, bundled_models, model_folder
+    from mld_core.model_route import is_auto
 
+    if is_auto(model_dir):  # any bundled model may make a line
+        joined = "".join(model_fingerprint(WEIGHTS_DIR / name) for name in bundled_models())
+        return hashlib.sha256(("auto\0" + joined).encode()).hexdigest()
     try:
         folder = model_folder(model_dir)
     except UnknownModel:  # nothing to fingerprint: loading the model says why

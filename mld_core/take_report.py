@@ -17,8 +17,8 @@ class BeyondModel(ValueError):
     """A prompt the model has not learned, refused under ``strict``."""
 
 
-CLI_PICK = "--model {name}"  # how a user of generate or the batch picks another bundled model
-PANEL_PICK = "choose it as the panel's Model"
+CLI_PICK = "--model {name}, or --model auto"  # how a user of generate or the batch picks another bundled model
+PANEL_PICK = "choose it, or Auto, as the panel's Model"
 
 
 def other_model_note(coverage: Coverage, model_id: str, pick: str = CLI_PICK) -> str:

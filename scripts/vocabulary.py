@@ -133,7 +133,8 @@ def rate_and_median(results: list[tuple[bool, float]]) -> tuple[float, float]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", required=True, type=Path, help="a folder written by data prepare cmu-joints")
-    ap.add_argument("--model", default=None, help="a model folder (default: the bundled model)")
+    ap.add_argument("--model", default=None, help="a model folder, a bundled model's name, or auto: each prompt by "
+                    "the bundled model it goes to (mld_core.model_route; default: the bundled default)")
     ap.add_argument("--seeds", type=int, default=8)
     ap.add_argument("--seconds", type=float, default=5.0)
     ap.add_argument("--captions", type=int, default=2, help="test captions per verb (default 2)")
@@ -143,6 +144,7 @@ def main(argv=None) -> int:
     ap.add_argument("--verb-redraws", type=int, default=None, metavar="N",
                     help="draws of a take beyond its first when it misses its prompt's verb (default: the model's "
                          "config verb_redraws; 0: the model alone)")
+    ap.add_argument("--draft", action="store_true", help="the model's Draft (docs/draft.md) instead of its Final")
     ap.add_argument("--vae-recon", action="store_true",
                     help="only the real windows through the model's VAE (works on a VAE-only run folder)")
     ap.add_argument("--split", default="test", choices=("test", "val", "train"),
@@ -167,7 +169,10 @@ def main(argv=None) -> int:
     from mld_core.pipeline import MLDPipeline
 
     torch.set_num_threads(args.threads)
-    pipe = MLDPipeline.from_pretrained(args.model)
+    from mld_core.model_route import ModelRouter, is_auto
+
+    router = ModelRouter(MLDPipeline.from_pretrained) if is_auto(args.model) else None
+    pipe = router.pipe("default") if router else MLDPipeline.from_pretrained(args.model)
     whole = set(whole_trial_windows(args.data))
     rows, takes, start, redraw_s = [], [], time.perf_counter(), 0.0
     if args.vae_recon:
@@ -190,7 +195,9 @@ def main(argv=None) -> int:
         print(f"error: this action-conditioned model has no label {', '.join(missing)}", file=sys.stderr)
         return 2
     redraws = pipe.config.verb_redraws if args.verb_redraws is None else args.verb_redraws
-    print(f"model {pipe.model_id}; {args.seeds} seeds x {args.seconds:g} s" + (" (action labels)" if by_action else "")
+    model = "auto" if router else pipe.model_id
+    print(f"model {model}{' (Draft)' if args.draft else ''}; {args.seeds} seeds x {args.seconds:g} s"
+          + (" (action labels)" if by_action else "")
           + (f"; verb redraws {redraws}" if redraws and not by_action else ""))
     print(f"{'verb':12} {'wording':15} {'takes':>5} {'pass':>6} {'real':>6} {'ratio':>6} {'low cm':>7} {'real':>5} "
           f"{'float':>5} {'real':>5}")
@@ -205,8 +212,10 @@ def main(argv=None) -> int:
             passed, lows, floats = [], [], []
             for prompt in prompts:
                 actions = {"actions": [prompt]} if by_action else {}
-                out = pipe([prompt], seconds=args.seconds, seed=0, num_variants=args.seeds, verb_redraws=redraws,
-                           **actions)
+                maker = router.pipe_for([prompt])[1] if router else pipe
+                out = maker([prompt], seconds=args.seconds, seed=0, num_variants=args.seeds, draft=args.draft,
+                            **actions,
+                            verb_redraws=maker.config.verb_redraws if args.verb_redraws is None else redraws)
                 redraw_s += out.timings.get("verb_redraws_s", 0.0)
                 for v in range(len(out.joints)):
                     joints = out.joints[v, : out.lengths[v]]
@@ -215,7 +224,8 @@ def main(argv=None) -> int:
                     lows.append(lowest_cm(joints))
                     floats.append(foot_float(joints, out.fps))
                     draw = int(out.draws[v]) if out.draws else 0
-                    takes.append({"verb": verb, "wording": wording, "prompt": prompt, "seed": v, "pass": bool(ok),
+                    takes.append({"verb": verb, "wording": wording, "prompt": prompt, "model": maker.model_id,
+                                  "seed": v, "pass": bool(ok),
                                   "draw": draw, "lowest_cm": round(lows[-1], 2), "float": round(floats[-1], 4)})
             rate = float(np.mean(passed)) if passed else float("nan")
             ratio = rate / real if real > 0 else float("nan")
@@ -230,7 +240,8 @@ def main(argv=None) -> int:
     print(f"{len(takes)} takes in {time.perf_counter() - start:.0f} s"
           + (f"; {redrawn:.2f} of them a later draw, {redraw_s:.0f} s spent drawing again" if redraws else ""))
     if args.json:
-        args.json.write_text(json.dumps({"model": pipe.model_id, "seeds": args.seeds, "seconds": args.seconds,
+        args.json.write_text(json.dumps({"model": model, "draft": args.draft, "seeds": args.seeds,
+                                         "seconds": args.seconds,
                                          "verb_redraws": redraws, "redrawn": redrawn, "redraw_s": redraw_s,
                                          "rows": rows, "takes": takes}, indent=1) + "\n")
     return 0

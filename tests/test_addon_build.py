@@ -47,7 +47,9 @@ def test_zip_holds_addon_core_model_and_text_encoder(tmp_path, tiny_dir):
     bundled = {n.split("/")[3] for n in names if n.startswith("_vendor/mld_core/weights/")}
     assert bundled == {"default", "evaluator", "v4_preview"}
     assert {"_vendor/mld_core/weights/v4_preview/config.json", "_vendor/mld_core/weights/v4_preview/LICENSE",
-            "_vendor/mld_core/weights/v4_preview/verb_denoiser.safetensors"} <= names
+            "_vendor/mld_core/weights/v4_preview/verb_denoiser.safetensors",
+            "_vendor/mld_core/weights/v4_preview/draft.safetensors",
+            "_vendor/mld_core/weights/v4_preview/draft_text.safetensors"} <= names
     # the evaluator and its real-data reference: the adherence badge in Blender
     assert {"_vendor/mld_core/weights/evaluator/model.safetensors",
             "_vendor/mld_core/weights/evaluator/quality_reference.json"} <= set(names)

@@ -105,11 +105,11 @@ def test_model_for_verbs_needs_another_model_trained_on_every_verb(weights):
 def test_other_model_note_only_for_an_unknown_prompt_naming_the_verbs(weights):
     unknown = Coverage("a person jumps over a puddle", 0.5, "unknown")
     assert other_model_note(unknown, "base-v1") == ("the bundled model verbs is trained to make a jump "
-                                                    "(--model verbs)")
+                                                    "(--model verbs, or --model auto)")
     assert other_model_note(Coverage("a person jumps", 0.9, "known"), "base-v1") == ""
     assert other_model_note(Coverage("a person juggles", 0.4, "unknown"), "base-v1") == ""
     assert other_model_note(Coverage("a person crawls, then jumps", 0.4, "unknown"), "base-v1").endswith(
-        "is trained to make a crawl and a jump (--model verbs)")
+        "is trained to make a crawl and a jump (--model verbs, or --model auto)")
 
 
 class _Pipe:
@@ -124,17 +124,17 @@ def test_check_prompts_says_which_bundled_model_to_pick(weights):
     coverages = check_prompts(_Pipe(), ["a person walks", "a person jumps"], warn=said.append)
     assert [c.verdict for c in coverages] == ["known", "unknown"]
     assert len(said) == 2 and said[0].startswith('warning: this model has not learned "a person jumps"')
-    assert said[1] == "note: the bundled model verbs is trained to make a jump (--model verbs)"
-    with pytest.raises(BeyondModel, match=r"; the bundled model verbs is trained to make a jump \(--model verbs\) "
-                                          r"\(--strict: nothing generated\)$"):
+    assert said[1] == "note: the bundled model verbs is trained to make a jump (--model verbs, or --model auto)"
+    with pytest.raises(BeyondModel, match=r"; the bundled model verbs is trained to make a jump \(--model verbs, or "
+                                          r"--model auto\) \(--strict: nothing generated\)$"):
         check_prompts(_Pipe(), ["a person jumps"], strict=True, warn=said.append)
 
 
 def test_the_panel_choice_yields_to_a_folder_set_outside_the_panel(weights):
     from blender_addon.worker.model_choice import chosen_model_dir, folder_override, model_items
 
-    assert [name for name, _, _ in model_items()] == ["default", "verbs"]
-    assert model_items()[1][1] == "verbs-v1" and model_items()[0][2].endswith("the default")
+    assert [name for name, _, _ in model_items()] == ["auto", "default", "verbs"]
+    assert model_items()[2][1] == "verbs-v1" and model_items()[1][2].endswith("the default")
     assert chosen_model_dir("default") is None and chosen_model_dir(None) is None
     assert chosen_model_dir("verbs") == str(weights / "verbs")
     assert chosen_model_dir("gone") is None  # a choice saved in a .blend that is no longer bundled: the default
@@ -143,15 +143,17 @@ def test_the_panel_choice_yields_to_a_folder_set_outside_the_panel(weights):
     assert folder_override("", "/env/model") == "/env/model" and folder_override("  ", None) is None
 
 
-def test_the_panel_knows_which_models_have_a_draft_and_notes_the_verb_model():
+def test_the_panel_knows_which_models_have_a_draft_and_notes_the_verb_model(tmp_path):
     from blender_addon.worker.model_choice import has_draft, model_id_of, other_model_line
+    from mld_core.testing import tiny_model
 
-    assert has_draft(None) and not has_draft("v4_preview")
+    assert has_draft(None) and has_draft("v4_preview") and has_draft("auto")
+    assert not has_draft(str(tiny_model(tmp_path / "no_draft")))
     assert model_id_of(None) == "mld-bandai-cpu-v3.8" and model_id_of("nope") == ""
     line = other_model_line("a person jumps over a puddle", "unknown", None, False)
-    assert line == "the bundled model v4_preview is trained to make a jump (choose it as the panel's Model)"
+    assert line == "the bundled model v4_preview is trained to make a jump (choose it, or Auto, as the panel's Model)"
     assert other_model_line("a person jumps over a puddle", "unknown", None, True).endswith(
-        "(clear the Preferences' model folder, then choose it as the panel's Model)")
+        "(clear the Preferences' model folder, then choose it, or Auto, as the panel's Model)")
     assert other_model_line("a person jumps over a puddle", "unknown", "v4_preview", False) == ""
     assert other_model_line("a person jumps over a puddle", "near", None, False) == ""
 
@@ -173,7 +175,8 @@ def test_generate_on_the_default_points_an_unlearned_verb_prompt_to_the_preview(
     err = capsys.readouterr().err.splitlines()
     learned = [n for n, line in enumerate(err) if line.startswith('warning: this model has not learned "a person jumps')]
     assert learned and err[learned[0] + 1] == ("note: the bundled model v4_preview is trained to make a jump "
-                                               "(--model v4_preview)")
+                                               "(--model v4_preview, or --model auto)")
     assert main(["generate", "a person jumps over a puddle", "--strict", "--out", str(tmp_path / "strict.npz")]) == 2
-    assert "trained to make a jump (--model v4_preview) (--strict: nothing generated)" in capsys.readouterr().err
+    assert ("trained to make a jump (--model v4_preview, or --model auto) (--strict: nothing generated)"
+            in capsys.readouterr().err)
     assert not (tmp_path / "strict.npz").exists()

@@ -1,4 +1,4 @@
-"""The panel's Model: the bundled models to choose from, the choice reaching Generate's request and the coverage
+"""The panel's Model: Auto and the bundled models to choose from, the choice reaching Generate's request and the coverage
 check, a folder set in the Preferences winning over it, and why Draft is off for a model without one (bpy in a
 subprocess; nothing is generated)."""
 
@@ -30,7 +30,7 @@ def drawn():
     panels.MLD_PT_generate.draw(Host(), ctx)
     return [list(c) for c in Layout.calls]
 
-for model in ("default", "v4_preview"):
+for model in ("auto", "default", "v4_preview"):
     s.model = model
     out[model] = {{"request": operators.request_from_settings(s, None).model_dir, "key": quality_ui._model_key(ctx)[0],
                    "final": drawn(), "final_problem": operators.generate_problem(ctx)}}
@@ -54,15 +54,16 @@ def test_the_panel_chooses_a_bundled_model_and_says_when_it_has_no_draft(tmp_pat
     r = run_bpy_script(SCRIPT.format(repo=str(REPO), tests=str(REPO / "tests")), tmp_path, timeout=120,
                        MLD_MODEL_DIR="")
     no_draft = "This model has no Draft: use Final (Live Preview needs a Draft)"
-    assert r["start"] == "default"
+    assert r["start"] == "auto"  # a new scene starts on Auto
+    assert r["auto"]["request"] == "auto" == r["auto"]["key"]  # routed per request (model_choice.pipe_for_request)
+    assert no_draft not in _labels(r["auto"]["draft"]) and r["auto"]["draft_problem"] == r["default"]["draft_problem"]
     assert r["default"]["request"] is None and r["default"]["key"] is None  # the bundled default, as before
     assert ["prop", "model"] in r["default"]["final"] and no_draft not in _labels(r["default"]["draft"])
     preview = r["v4_preview"]
     assert preview["request"] == str(REPO / "mld_core" / "weights" / "v4_preview") == preview["key"]
-    assert no_draft in _labels(preview["draft"]) and no_draft not in _labels(preview["final"])
-    # Generate's poll says why it is off in Draft (the armature comes next), and not in Final
-    assert preview["draft_problem"] == "This model has no Draft: use Final"
-    assert r["default"]["draft_problem"] == preview["final_problem"] != preview["draft_problem"]
+    assert no_draft not in _labels(preview["draft"])  # the preview has its own Draft
+    # Generate's poll says the armature comes next, in Draft as in Final, on every bundled model
+    assert r["default"]["draft_problem"] == preview["final_problem"] == preview["draft_problem"]
     assert "no_such_model" in r["bad"]
 
 
@@ -72,8 +73,10 @@ def test_a_folder_set_outside_the_panel_wins_and_is_named(tmp_path):
     model = tiny_model(tmp_path / "studio_model")
     r = run_bpy_script(SCRIPT.format(repo=str(REPO), tests=str(REPO / "tests")), tmp_path, timeout=120,
                        MLD_MODEL_DIR=str(model))
-    for choice in ("default", "v4_preview"):
+    for choice in ("auto", "default", "v4_preview"):
         assert r[choice]["request"] == str(model) == r[choice]["key"]
         assert ["prop", "model"] not in r[choice]["final"]
         assert "Model: studio_model (set in Preferences)" in _labels(r[choice]["final"])
     assert "This model has no Draft: use Final (Live Preview needs a Draft)" in _labels(r["default"]["draft"])
+    # Generate's poll says why it is off in Draft, and not in Final (the armature comes next there)
+    assert r["default"]["draft_problem"] == "This model has no Draft: use Final" != r["default"]["final_problem"]

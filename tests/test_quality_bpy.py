@@ -187,4 +187,25 @@ def test_the_batch_draws_a_take_again_for_its_verb_when_told_to(tmp_path, tiny_w
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "warning: line 1: it does not show a jump as the prompt says (try another seed" in proc.stderr
     # the tiny model has not learned the prompt, and the bundled v4 preview is trained on its verb
-    assert "note: line 1: the bundled model v4_preview is trained to make a jump (--model v4_preview)" in proc.stderr
+    assert ("note: line 1: the bundled model v4_preview is trained to make a jump (--model v4_preview, or --model "
+            "auto)") in proc.stderr
+
+
+def test_the_batch_with_model_auto_makes_each_line_by_its_model(tmp_path):
+    """--model auto: each line by the bundled model that makes it, said per line; each take records its model."""
+    import json
+
+    from bpy_util import run_python
+
+    jobs = tmp_path / "prompts.txt"
+    jobs.write_text("a person jumps over a puddle\na person walks forward\n")
+    blend = tmp_path / "auto.blend"
+    proc = run_python([REPO / "blender_addon" / "batch.py", "--prompts", jobs, "--model", "auto", "--steps", "2",
+                       "--seconds", "2", "--side-redraws", "0", "--verb-redraws", "0", "--out", blend],
+                      user_dir=tmp_path / "blender_user", timeout=240)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    manifest = json.loads(blend.with_suffix(".json").read_text())
+    assert manifest["model_id"] == "auto" and manifest["model_dir"] == "auto"
+    assert [t["model_id"] for t in manifest["takes"]] == ["mld-v4-preview", "mld-bandai-cpu-v3.8"]
+    assert "note: line 1: auto: v4_preview makes this prompt (trained to make a jump" in proc.stderr
+    assert "line 2: auto" not in proc.stderr and "--model auto)" not in proc.stderr

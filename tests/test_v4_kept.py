@@ -107,6 +107,30 @@ def test_the_kept_text_model_is_fp16_generates_and_records_no_machine_path():
     assert not np.allclose(guided[0], plain[0], atol=1e-3) and np.array_equal(guided[1], plain[1])
 
 
+
+def test_the_preview_has_a_draft_whose_teacher_step_is_verb_guided():
+    """The preview's Draft (draft.safetensors, fp16; the default's 3-layer text encoder): a Draft take of a verb
+    prompt has its teacher step guided by the verb denoiser too (config draft.teacher_verb_guide), another prompt
+    not; its card says how it was distilled and measured."""
+    from mld_core.pipeline import MLDPipeline
+
+    folder = V4.parents[1] / "mld_core" / "weights" / "v4_preview"
+    default = V4.parents[1] / "mld_core" / "weights" / "default"
+    assert {v.dtype for v in load_file(str(folder / "draft.safetensors")).values()} == {torch.float16}
+    assert (folder / "draft_text.safetensors").read_bytes() == (default / "draft_text.safetensors").read_bytes()
+    assert "## Draft" in (folder / "MODEL_CARD.md").read_text()
+    pipe = MLDPipeline.from_pretrained(folder, draft_precision="fp32")
+    d = pipe.config.draft
+    assert (d.teacher_verb_guide, d.text_layers, d.teacher_steps, pipe.draft_text_layers) == (True, 3, 1, 3)
+    assert pipe.config.provenance["draft_training"]["fold_verb_guide"] is True
+    kw = dict(seconds=2.0, seed=0, draft=True, repair=False, side_redraws=0, verb_redraws=0)
+    guided = pipe(["a person jumps", "a person waves"], **kw).joints
+    d.teacher_verb_guide = False
+    plain = pipe(["a person jumps", "a person waves"], **kw).joints
+    assert np.isfinite(guided).all() and not np.allclose(guided[0], plain[0], atol=1e-3)
+    assert np.array_equal(guided[1], plain[1])
+
+
 def test_the_kept_action_model_is_fp16_generates_by_label_and_refuses_an_unknown_one():
     """research/v4/action_model: conditioned on the action labels of the merged folder (``generate --action jump``),
     in fp16 on the fourth sitting of research/v4/vae; a label it was not trained on is refused by name."""

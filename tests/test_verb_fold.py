@@ -160,3 +160,67 @@ def test_fold_settings_are_refused_in_one_line_before_any_work(guided, tmp_path,
         load_verb_fold(model, load_config(model), other, ["a"], torch.device("cpu"))
     assert main(_fold_args(data, model, tmp_path / "on_other", 1, vae=other)) == 2
     assert "is not" in capsys.readouterr().err and not (tmp_path / "on_other" / "config.json").exists()
+
+
+def test_the_verb_term_scales_with_each_rows_weight():
+    """with_verb_term: weight 0 leaves a row as it is; weight w adds w times the fold's term (the Draft's teacher
+    guided at w), on the rows naming a label only."""
+    teacher, verb = _denoiser(1, "text"), _denoiser(2, "action")
+    fold = VerbFold(teacher, VerbGuide(verb, ["walk", "kick", "jump"], 2.5), 4.0, torch.tensor([2, -1, 1]))
+    g = torch.Generator().manual_seed(1)
+    z, eps = torch.randn(3, 2, 16, generator=g), torch.randn(3, 2, 16, generator=g)
+    t, lengths, caps = torch.full((3,), 300), torch.tensor([40, 60, 80]), torch.tensor([0, 1, 2])
+    with torch.no_grad():
+        one = fold.with_verb_term(eps, z, t, lengths, caps, torch.ones(3)) - eps
+        three = fold.with_verb_term(eps, z, t, lengths, caps, torch.tensor([3.0, 3.0, 0.0])) - eps
+    assert float(one[0].abs().max()) > 1e-3 and torch.equal(one[1], torch.zeros_like(one[1]))  # row 1: no label
+    assert torch.allclose(three[0], 3 * one[0], atol=1e-5) and torch.equal(three[2], torch.zeros_like(three[2]))
+
+
+def _draft_args(data, teacher, out, **settings):
+    config = {"batch_size": 8, "crops_per_clip": 2, "save_every": 2, **settings}
+    return ["train", "draft", "--data", str(data), "--teacher", str(teacher), "--out", str(out), "--steps", "2",
+            "--threads", "1", "--lr", "1e-2", "--config", json.dumps(config)]
+
+
+def test_a_draft_distilled_with_the_verb_fold_learns_another_goal(guided, tmp_path, capsys):
+    """train draft's fold_verb_guide: the teacher's steps carry the verb term, so the same seeded run ends elsewhere;
+    a teacher without a verb denoiser is refused in one line before any work."""
+    from safetensors.torch import load_file
+
+    data, model = guided["data"], guided["guided"]
+    assert main(_draft_args(data, model, tmp_path / "plain")) == 0
+    assert main(_draft_args(data, model, tmp_path / "folded", fold_verb_guide=True)) == 0
+    assert load_config(tmp_path / "folded").provenance["draft_training"]["fold_verb_guide"] is True
+    plain, folded = (load_file(str(tmp_path / n / "draft.safetensors")) for n in ("plain", "folded"))
+    assert max(float((plain[k] - folded[k]).abs().max()) for k in plain) > 1e-6
+    capsys.readouterr()
+    assert main(_draft_args(data, guided["text"], tmp_path / "no_guide", fold_verb_guide=True)) == 2
+    err = capsys.readouterr().err
+    assert "has no verb denoiser" in err and len(err.strip().splitlines()) == 1 and not (tmp_path / "no_guide").exists()
+
+
+def test_the_drafts_teacher_step_carries_the_verb_term_when_its_config_says_so(guided, tmp_path):
+    """draft.teacher_verb_guide: a verb prompt's Draft take changes, a prompt naming no label stays the same, and
+    rows of a batch still equal single runs."""
+    import shutil
+
+    from mld_core.training.draft import install_draft
+
+    run = tmp_path / "draft_run"
+    assert main(_draft_args(guided["data"], guided["guided"], run)) == 0
+    takes = {}
+    for on in (False, True):
+        folder = tmp_path / f"model_{on}"
+        shutil.copytree(guided["guided"], folder)
+        install_draft(run, folder)
+        data = json.loads((folder / "config.json").read_text())
+        data["draft"].update(teacher_steps=1, teacher_guidance=1.5, teacher_verb_guide=on)
+        (folder / "config.json").write_text(json.dumps(data))
+        pipe = MLDPipeline.from_pretrained(folder, draft_precision="fp32")
+        out = pipe(["a person jumps", "a person walks"], seconds=1.5, seed=[0, 1], draft=True, verb_redraws=0)
+        single = pipe("a person jumps", seconds=1.5, seed=0, draft=True, verb_redraws=0)
+        assert torch.allclose(torch.as_tensor(out.joints[0]), torch.as_tensor(single.joints[0]), atol=1e-5)
+        takes[on] = out.joints
+    assert float(abs(takes[True][0] - takes[False][0]).max()) > 1e-4  # the jump: its teacher step guided by "jump"
+    assert float(abs(takes[True][1] - takes[False][1]).max()) == 0.0  # the walk names no label of the guide

@@ -29,10 +29,13 @@ def _model_key(context) -> tuple:
 
 
 def _check(text: str, key: tuple):
+    """The prompt's coverage by the model Generate uses (under Auto: by the default, which the route reads)."""
+    from mld_core.model_route import is_auto
+
     from . import runtime
 
     model_dir, device, threads = key
-    return runtime.cache().get(model_dir, device, threads).coverage([text])[0]
+    return runtime.cache().get(None if is_auto(model_dir) else model_dir, device, threads).coverage([text])[0]
 
 
 def watcher() -> CoverageWatcher:
@@ -72,6 +75,12 @@ def draw_coverage(layout, settings, context) -> None:
         if not watcher().pending:
             watcher().request(text, key)  # e.g. a file opened with a prompt in it
         layout.label(text="Checking the prompt ...", icon="TIME")
+        return
+    from mld_core.model_route import is_auto, route_line
+
+    routed = route_line(cov) if is_auto(key[0]) and cov.verdict != "unavailable" else ""
+    if routed:  # Auto sends the prompt to the bundled model trained on its verbs
+        layout.label(text=routed[0].upper() + routed[1:], icon="INFO")
         return
     line = coverage_line(cov)
     if line is not None:

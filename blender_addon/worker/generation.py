@@ -15,6 +15,7 @@ from datetime import datetime, timezone
 import numpy as np
 
 from .dependencies import ADDON_VERSION_STRING
+from .model_choice import pipe_for_request
 from .naming import action_name
 from .validation import GenerateRequest
 
@@ -202,7 +203,7 @@ def make_work(cache):
         request: GenerateRequest = job.request
         job.stage = "loading model"
         loads_before = cache.loads
-        pipe = cache.get(request.model_dir, request.device, request.threads)
+        pipe = pipe_for_request(cache, request)
         load_s = cache.load_seconds if cache.loads != loads_before else 0.0
         job.check_cancel()
         min_s, max_s = getattr(pipe, "min_seconds", None), getattr(pipe, "max_seconds", None)

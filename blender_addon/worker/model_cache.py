@@ -1,8 +1,9 @@
 """Loading the model once and keeping it (bpy-free).
 
 :class:`PipelineCache` loads ``mld_core.pipeline.MLDPipeline`` for a (model folder, device) pair the first
-time it is asked and hands back the same object afterwards; a different folder or device replaces it (one
-model in memory at a time). It is thread-safe: the worker thread loads, the main thread may ``clear()``.
+time it is asked and hands back the same object afterwards. It keeps the two used last (Auto moves between the
+default and another bundled model); a third replaces the one used longest ago. It is thread-safe: the worker thread
+loads, the main thread may ``clear()``.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import inspect
 import os
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -93,13 +95,14 @@ def default_loader(model_dir: str | None, device: str) -> Any:
 
 
 class PipelineCache:
-    """One loaded pipeline, reused while the (model folder, device) stays the same."""
+    """The pipelines of the last ``keep`` (model folder, device) pairs asked for, reused while they stay."""
 
-    def __init__(self, loader: Callable[[str | None, str], Any] = default_loader):
+    def __init__(self, loader: Callable[[str | None, str], Any] = default_loader, keep: int = 2):
         self._loader = loader
+        self._keep = max(1, int(keep))
         self._lock = threading.Lock()
-        self._key: tuple[str | None, str] | None = None
-        self._pipe: Any = None
+        self._pipes: OrderedDict = OrderedDict()  # key -> pipeline, the one used last at the end
+        self._last: tuple[str | None, str] | None = None
         self.load_seconds: float = 0.0
         self.loads = 0
 
@@ -109,7 +112,7 @@ class PipelineCache:
         return folder, device
 
     def get(self, model_dir: str | None = None, device: str = "cpu", threads: int = 0) -> Any:
-        """The pipeline for ``model_dir`` on ``device``, loading it if it is not the cached one."""
+        """The pipeline for ``model_dir`` on ``device``, loading it if it is not kept."""
         set_threads(threads)
         if device == "auto":
             device = resolve_device(device)
@@ -117,27 +120,34 @@ class PipelineCache:
             device = resolve_device(device)
         key = self.key(model_dir, device)
         with self._lock:
-            if self._pipe is not None and self._key == key:
-                return self._pipe
-            self._pipe, self._key = None, None  # drop the old one before loading the new one
+            if key in self._pipes:
+                self._pipes.move_to_end(key)
+                self._last = key
+                return self._pipes[key]
+            while len(self._pipes) >= self._keep:  # drop the oldest before loading the new one
+                self._pipes.popitem(last=False)
             start = time.perf_counter()
             pipe = self._loader(model_dir, device)
             self.load_seconds = time.perf_counter() - start
             self.loads += 1
-            self._pipe, self._key = pipe, key
+            self._pipes[key], self._last = pipe, key
             return pipe
 
     @property
     def loaded(self) -> bool:
-        return self._pipe is not None
+        return bool(self._pipes)
 
     def describe(self) -> str:
-        if self._pipe is None:
-            return "not loaded"
-        folder, device = self._key
-        model_id = getattr(self._pipe, "model_id", None) or (Path(folder).name if folder else "default")
+        """The pipeline used last: its model id, device and load time."""
+        with self._lock:
+            pipe = self._pipes.get(self._last) if self._last is not None else None
+            if pipe is None:
+                return "not loaded"
+            folder, device = self._last
+        model_id = getattr(pipe, "model_id", None) or (Path(folder).name if folder else "default")
         return f"{model_id} on {device} (loaded in {self.load_seconds:.1f} s)"
 
     def clear(self) -> None:
         with self._lock:
-            self._pipe, self._key = None, None
+            self._pipes.clear()
+            self._last = None

@@ -1,17 +1,23 @@
 """Which model Generate uses: the Preferences' model folder (or ``MLD_MODEL_DIR``) when one is set, else the bundled
-model chosen in the panel (mld_core.bundled). No bpy here: the panel, the operators and the coverage watcher read it."""
+model chosen in the panel (mld_core.bundled), or under Auto the bundled model the prompt goes to
+(mld_core.model_route). No bpy here: the panel, the operators, the worker and the coverage watcher read it."""
 
 from __future__ import annotations
 
 from functools import lru_cache
 
-from mld_core.bundled import DEFAULT_NAME, WEIGHTS_DIR, UnknownModel, bundled_models, model_folder, model_id_in
+from mld_core import bundled
+from mld_core.bundled import DEFAULT_NAME, UnknownModel, bundled_models, model_folder, model_id_in
 from mld_core.inputs import model_limits
+from mld_core.model_route import AUTO, is_auto, model_for_call
+
+AUTO_TIP = ("Auto: the default model, and for a prompt it has not learned that asks for a jump, a crawl, a fall, ... "
+            "the bundled model trained to make it")
 
 
 def model_items() -> list[tuple[str, str, str]]:
     """The panel's Model choices, (name, label, tooltip) per bundled model, the default first."""
-    items = []
+    items = [(AUTO, "Auto", AUTO_TIP)] if len(bundled_models()) > 1 else []
     for name, model_id in bundled_models().items():
         tip = f"The bundled model {model_id} (mld_core/weights/{name}; its MODEL_CARD.md says what it makes)"
         items.append((name, model_id, tip + (", the default" if name == DEFAULT_NAME else "")))
@@ -29,12 +35,14 @@ def folder_override(prefs_dir: str | None, env_dir: str | None) -> str | None:
 def chosen_model_dir(choice: str | None, override: str | None = None) -> str | None:
     """The model folder for a request: ``override``, a folder set outside the panel (folder_override), wins; else
     the panel's bundled ``choice``'s folder (None for the default, or for a name no longer bundled, which loads the
-    default)."""
+    default); AUTO under Auto (pipe_for_request routes each request)."""
     if override is not None:
         return override
+    if choice == AUTO:
+        return AUTO
     if not choice or choice == DEFAULT_NAME:
         return None
-    return str(WEIGHTS_DIR / choice) if choice in bundled_models() else None
+    return str(bundled.WEIGHTS_DIR / choice) if choice in bundled_models() else None
 
 
 def folder_override_for(prefs) -> str | None:
@@ -55,6 +63,22 @@ def has_draft(model_dir: str | None) -> bool:
     return model_limits(model_dir).draft_guidance is not None
 
 
+def pipe_for_request(cache, request):
+    """The pipeline a request runs on (``cache`` a model_cache.PipelineCache): its model folder's; under Auto the
+    bundled model its prompt (a sequence: its segments, together) goes to. A Draft asked of a model without one
+    raises ValueError naming the model Auto chose."""
+    if not is_auto(request.model_dir):
+        return cache.get(request.model_dir, request.device, request.threads)
+    sequence = request.extra.get("sequence") if isinstance(request.extra, dict) else None
+    prompts = [p for p, _ in sequence] if sequence else [request.prompt]
+    default = cache.get(None, request.device, request.threads)
+    name = model_for_call(default.coverage(prompts), one_motion=True)
+    pipe = default if name == DEFAULT_NAME else cache.get(name, request.device, request.threads)
+    if request.draft and getattr(pipe, "draft_denoiser", None) is None:
+        raise ValueError(f"Auto chose {name} for this prompt and it has no Draft: use Final")
+    return pipe
+
+
 @lru_cache(maxsize=64)
 def other_model_line(prompt: str, verdict: str, model_dir: str | None, overridden: bool) -> str:
     """The panel's line under an ``unknown`` verdict when another bundled model is trained on the prompt's verbs
@@ -62,6 +86,8 @@ def other_model_line(prompt: str, verdict: str, model_dir: str | None, overridde
     from mld_core.condition.coverage import Coverage
     from mld_core.take_report import PANEL_PICK, other_model_note
 
+    if is_auto(model_dir):  # Auto already goes to that model (mld_core.model_route.route_line says so)
+        return ""
     pick = ("clear the Preferences' model folder, then " if overridden else "") + PANEL_PICK
     return other_model_note(Coverage(prompt, 0.0, verdict), model_id_of(model_dir), pick)
 

@@ -35,6 +35,7 @@ from mld_core.schedulers import LCMScheduler
 from mld_core.training import distributed
 from mld_core.training.common import (Budget, balanced_weights, checked_budget, checked_folder_setting,
                                      load_train_state, lr_factor, save_train_state, set_lr, setup_torch)
+from mld_core.training.verb_fold import check_foldable, load_verb_fold
 from mld_core.training.denoiser import (LATENT_CACHE, TEXT_CACHE, _cached, cached_caption_embeddings, embed_captions,
                                        encode_latents, prepare_run_with_caches, text_units)
 
@@ -74,6 +75,8 @@ class DraftTrainConfig:
     init: str | None = None  # a model folder whose Draft the student starts from (the teacher fine-tuned since)
     device: str = "cpu"  # cpu, cuda, mps or auto (where this sitting trains; any sitting may resume on another)
     fp32: bool = False  # on CUDA, no mixed precision (default there: bf16 autocast, or fp16 with a gradient scaler)
+    fold_verb_guide: bool = False  # the teacher's steps carry its verb denoiser's term on the captions naming a
+    #   label (mld_core.training.verb_fold, scaled with w), so the Draft learns the verb-guided model
 
     def __post_init__(self):
         """Every setting checked before any work (a bad one would train nothing, or a Draft that cannot load), and
@@ -84,6 +87,7 @@ class DraftTrainConfig:
             setattr(self, name, inputs.int_in_range(getattr(self, name), name, lo, hi))
         self.caches_from = checked_folder_setting(self.caches_from, "caches_from")
         self.init = checked_folder_setting(self.init, "init")
+        self.fold_verb_guide = inputs.true_or_false(self.fold_verb_guide, "fold_verb_guide")
         self.draft_steps = inputs.int_in_range(self.draft_steps, "draft_steps", 1, self.original_steps)
         self.teacher_steps = inputs.int_in_range(self.teacher_steps, "teacher_steps", 0, self.original_steps - 1)
         for name, lo, hi in (("lr", 1e-12, 1.0), ("ema_decay", 0.0, 0.999999), ("huber_c", 1e-12, 1.0),
@@ -154,6 +158,8 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
     if base.denoiser.verb_hints:
         raise ValueError(f"--teacher {teacher_dir} reads verb hints: a Draft is not distilled from such a model yet")
     timesteps = draft_timesteps(cfg, LCMScheduler(base.scheduler, cfg.original_steps))  # checked before any work
+    if cfg.fold_verb_guide:
+        check_foldable(teacher_dir, base, teacher_dir)
     start = _starting_draft(cfg.init, base) if cfg.init and not resume else None
     rt = distributed.runtime(cfg.device, cfg.bf16, cfg.fp32, (cfg.batch_size, "batch_size"))  # before any writing
     rt.on_main(lambda: prepare_run_with_caches(out, resume, cfg.caches_from))
@@ -188,6 +194,7 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
     teacher = LatentDenoiser(base.denoiser)
     load_weights(teacher_dir / "denoiser.safetensors", teacher)
     teacher.eval().requires_grad_(False)
+    fold = load_verb_fold(teacher_dir, base, teacher_dir, captions, rt.device) if cfg.fold_verb_guide else None
     draft = DraftConfig(denoiser=copy.deepcopy(base.denoiser), num_inference_steps=cfg.draft_steps,
                         original_steps=cfg.original_steps, guidance_min=cfg.guidance_min,
                         guidance_max=cfg.guidance_max, guidance_scale=cfg.default_guidance,
@@ -252,7 +259,10 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
             cond = teacher.condition_tokens(b, text=emb)
             eps_null, eps_cond = teacher(torch.cat([z_t, z_t]), torch.cat([t, t]),
                                          torch.cat([teacher.null_tokens(b), cond]), torch.cat([L, L])).float().chunk(2)
-            z_prev = lcm.teacher_step(eps_null + w[:, None, None] * (eps_cond - eps_null), t, z_t)
+            eps = eps_null + w[:, None, None] * (eps_cond - eps_null)  # (B, n, d)
+            if fold is not None:
+                eps = fold.with_verb_term(eps, z_t, t, L, cap, w)
+            z_prev = lcm.teacher_step(eps, t, z_t)
             t_prev = t - lcm.skip
             goal = lcm.denoised(target(z_prev, t_prev, target.condition_tokens(b, text=emb), L, w).float(),
                                 t_prev, z_prev)

@@ -39,11 +39,20 @@ class VerbFold:
         label."""
         cond = self.teacher.condition_tokens(len(z_t), text=text, drop=drop)
         eps = self.teacher(z_t, t, cond, lengths).float()  # (B, n, d)
+        return self.with_verb_term(eps, z_t, t, lengths, captions, (~drop).float())
+
+    def with_verb_term(self, eps: torch.Tensor, z_t: torch.Tensor, t: torch.Tensor, lengths: torch.Tensor,
+                       captions: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+        """``eps`` (B, n, d) plus ``weight`` (B,) x (s_a / s) x (eps_a(label) - eps_a(null)) on the rows whose
+        caption (ids ``captions`` (B,)) names a label; rows of weight 0 are left as they are. A weight of 1 gives
+        the fold's text target; the guidance scale w gives the term of a step guided at w (the Draft's teacher)."""
         labels = self.caption_labels[captions]
-        rows = torch.nonzero((labels >= 0) & ~drop).squeeze(1)  # (B',)
-        if len(rows):
-            eps[rows] += (self.guide.scale / self.guidance_scale) * self._verb_term(z_t[rows], t[rows],
-                                                                                 lengths[rows], labels[rows])
+        rows = torch.nonzero((labels >= 0) & (weight != 0)).squeeze(1)  # (B',)
+        if not len(rows):
+            return eps
+        eps = eps.clone()
+        term = self._verb_term(z_t[rows], t[rows], lengths[rows], labels[rows])  # (B', n, d)
+        eps[rows] += (weight[rows, None, None] * self.guide.scale / self.guidance_scale) * term
         return eps
 
     def _verb_term(self, z_t, t, lengths, labels) -> torch.Tensor:
