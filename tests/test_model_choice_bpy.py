@@ -80,3 +80,45 @@ def test_a_folder_set_outside_the_panel_wins_and_is_named(tmp_path):
     assert "This model has no Draft: use Final (Live Preview needs a Draft)" in _labels(r["default"]["draft"])
     # Generate's poll says why it is off in Draft, and not in Final (the armature comes next there)
     assert r["default"]["draft_problem"] == "This model has no Draft: use Final" != r["default"]["final_problem"]
+
+
+ROUTE_SCRIPT = r"""
+import sys
+sys.path.insert(0, {repo!r})
+sys.path.insert(0, {tests!r})
+import bpy, addon_utils
+bpy.ops.wm.read_factory_settings(use_empty=True)
+addon_utils.enable("blender_addon", default_set=True)
+from blender_addon.ui import quality_panel as quality_ui
+from recording_layout import Layout
+
+ctx = bpy.context
+s = ctx.scene.mld_motion
+out = {{}}
+for model in ("auto", "default"):
+    s.model = model
+    for prompt in ("a person jumps over a puddle", "a person walks forward"):
+        s.prompt = prompt
+        key = quality_ui._model_key(ctx)
+        w = quality_ui.watcher()
+        with w._lock:  # the watcher's thread does this after the debounce; here at once
+            w._results[(prompt, key)] = quality_ui._check(prompt, key)
+        Layout.calls.clear()
+        quality_ui.draw_coverage(Layout(), s, ctx)
+        out[model + ": " + prompt] = [c[1] for c in Layout.calls if c[0] == "label"]
+emit(out)
+"""
+
+
+def test_under_auto_the_panel_says_which_model_makes_the_prompt(tmp_path):
+    """Auto: the line under a prompt the default has not learned that names a verb the preview is trained on says
+    the preview makes it (and points to no other model); other prompts and the default's own choice are
+    drawn as before."""
+    r = run_bpy_script(ROUTE_SCRIPT.format(repo=str(REPO), tests=str(REPO / "tests")), tmp_path, timeout=180,
+                       MLD_MODEL_DIR="")
+    assert r["auto: a person jumps over a puddle"] == [
+        "Auto: v4_preview makes this prompt (trained to make a jump, which the default has not learned)"]
+    assert r["auto: a person walks forward"] == r["default: a person walks forward"]
+    assert r["auto: a person walks forward"][0].startswith("Known to this model")
+    jump = r["default: a person jumps over a puddle"]
+    assert jump[0].startswith("Not learned by this model") and "choose it, or Auto, as the panel's Model" in jump[1]
