@@ -186,10 +186,10 @@ def _load_routed(args, lines):
         return router.pipe(DEFAULT_NAME)
     prompts = [line.text for line in lines]
     name, pipe = router.pipe_for(prompts, one_motion=args.sequence is not None)
-    for c in router.pipe(DEFAULT_NAME).coverage(list(dict.fromkeys(prompts))):
-        line = route_line(c) if name != DEFAULT_NAME else ""
-        if line:
-            print(line, file=sys.stderr)
+    if name != DEFAULT_NAME:
+        for coverage in router.pipe(DEFAULT_NAME).coverage(list(dict.fromkeys(prompts))):
+            if route_line(coverage):
+                print(route_line(coverage), file=sys.stderr)
     return pipe
 
 
