@@ -4,37 +4,17 @@ add-on's side: the panel's choice, the two-model cache and a request routed on t
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from mld_core import bundled
 from mld_core.cli import main
 from mld_core.condition.coverage import Coverage
 from mld_core.model_route import (AUTO, MixedRoute, ModelRouter, is_auto, model_for, model_for_call, route_line,
                                   verbs_to_route)
-
-
-def _model(folder: Path, model_id: str, verbs=()) -> Path:
-    folder.mkdir(parents=True)
-    config = {"format": "mld-core-model", "model_id": model_id}
-    if verbs:
-        config["verb_guide"] = {"actions": ["walk", *verbs], "scale": 8.0}
-    (folder / "config.json").write_text(json.dumps(config))
-    return folder
-
-
-@pytest.fixture
-def weights(tmp_path, monkeypatch):
-    """A weights folder of its own: the default and a model trained on jumps and crawls."""
-    root = tmp_path / "weights"
-    _model(root / "default", "base-v1")
-    _model(root / "verbs", "verbs-v1", verbs=("jump", "crawl"))
-    monkeypatch.setattr(bundled, "WEIGHTS_DIR", root)
-    return root
+from test_bundled_models import weights  # noqa: F401 - the fixture: a default and a model trained on jumps and crawls
 
 
 def _cov(prompt, verdict, known=("walk", "kick")):
