@@ -8,6 +8,7 @@ PROMPT ?= a person walks forward and waves with the right hand
 SECONDS_ ?= 4
 SEED ?= 0
 OUT ?= out
+MODEL ?= auto
 
 .PHONY: setup test demo addon draft clean
 
@@ -24,7 +25,7 @@ test: setup
 	$(BIN)/python -m pytest -q
 
 demo: setup
-	$(BIN)/python blender_addon/batch.py --prompt "$(PROMPT)" --seconds $(SECONDS_) --seed $(SEED) --out $(OUT)/take.blend --preview $(OUT)/take.png --overwrite
+	$(BIN)/python blender_addon/batch.py --prompt "$(PROMPT)" --seconds $(SECONDS_) --seed $(SEED) --model $(MODEL) --out $(OUT)/take.blend --preview $(OUT)/take.png --overwrite
 
 addon: setup
 	$(BIN)/python build_addon.py
