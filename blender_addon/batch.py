@@ -69,7 +69,7 @@ def _addon_package():
 _addon_package()  # puts mld_core (the vendored copy or the checkout) on sys.path
 from mld_core import inputs, shards  # noqa: E402
 from mld_core.bundled import UnknownModel, model_folder  # noqa: E402
-from mld_core.model_route import is_auto, route_line  # noqa: E402
+from mld_core.model_route import is_auto  # noqa: E402
 from mld_core.fileio import OutputSet  # noqa: E402
 from mld_core.take_report import other_model_note, seam_lines, side_report  # noqa: E402
 
@@ -502,12 +502,11 @@ def run(args) -> int:
     return EXIT_OK
 
 
-def key_every_line(args, addon, inp: _Inputs, pipe, scene, obj, cache=None) -> tuple[list, list]:
+def key_every_line(args, addon, inp: _Inputs, pipe, scene, obj, cache) -> tuple[list, list]:
     """3. One take per prompt line, keyed as its own Action (the first assigned); (manifest records, BVHs to
     write). Under --model auto each line goes to the bundled model that makes it (``cache`` keeps them)."""
     generation = importlib.import_module(f"{addon.__name__}.worker.generation")
     model_choice = importlib.import_module(f"{addon.__name__}.worker.model_choice")
-    default = pipe
     key_takes = importlib.import_module(f"{addon.__name__}.scene.key_takes")
     min_s, max_s = getattr(pipe, "min_seconds", None), getattr(pipe, "max_seconds", None)
     records, bvh_takes = [], []
@@ -516,7 +515,7 @@ def key_every_line(args, addon, inp: _Inputs, pipe, scene, obj, cache=None) -> t
             raise BatchError(f"line {line.line}: this model makes {min_s:g} to {max_s:g} s, got {request.seconds:g}")
         t0 = time.perf_counter()
         if is_auto(request.model_dir):
-            pipe = _routed_pipe(model_choice, cache, request, line, default)
+            pipe = _routed_pipe(model_choice, cache, request, line)
         result = generation.generate(pipe, request)
         report = key_takes.apply_result(obj, result, scene, exact=not args.no_exact, assign=index == 0,
                                         options=inp.retarget, bone_map=inp.bone_map)
@@ -556,17 +555,14 @@ def key_every_line(args, addon, inp: _Inputs, pipe, scene, obj, cache=None) -> t
     return records, bvh_takes
 
 
-def _routed_pipe(model_choice, cache, request, line, default):
+def _routed_pipe(model_choice, cache, request, line):
     """The pipeline Auto chose for a line, said on stderr when it is not the default."""
     try:
-        pipe = model_choice.pipe_for_request(cache, request)
+        pipe, said = model_choice.route_request(cache, request)
     except ValueError as exc:  # a Draft asked of a model without one
         raise BatchError(f"line {line.line}: {exc}") from None
-    if pipe is not default:
-        prompts = [p for p, _ in request.extra.get("sequence") or [(request.prompt, 0)]]
-        for coverage in default.coverage(prompts):
-            if route_line(coverage):
-                print(f"note: line {line.line}: {route_line(coverage)}", file=sys.stderr)
+    for why in said:
+        print(f"note: line {line.line}: {why}", file=sys.stderr)
     return pipe
 
 

@@ -304,6 +304,8 @@ def _check_draft(draft: DraftConfig, scheduler: SchedulerConfig) -> None:
     layers = draft.text_layers
     if layers is not None and (isinstance(layers, bool) or not isinstance(layers, int) or layers < 1):
         raise ValueError(f"draft.text_layers must be null or a whole number above 0, got {layers!r}")
+    if not isinstance(draft.teacher_verb_guide, bool):
+        raise ValueError(f"draft.teacher_verb_guide must be true or false, got {draft.teacher_verb_guide!r}")
     if draft.timesteps is not None:
         try:
             LCMScheduler(scheduler, grid).checked_timesteps(

@@ -179,17 +179,14 @@ def _load_routed(args, lines):
     """--model auto: the bundled model the prompts go to (mld_core.model_route), said on stderr when it is not the
     default; the default for --unconditional and --action, which read no prompt."""
     from mld_core.bundled import DEFAULT_NAME
-    from mld_core.model_route import ModelRouter, route_line
+    from mld_core.model_route import ModelRouter
 
     router = ModelRouter(lambda name: _load(args, name))
     if args.unconditional or args.action:
         return router.pipe(DEFAULT_NAME)
-    prompts = [line.text for line in lines]
-    name, pipe = router.pipe_for(prompts, one_motion=args.sequence is not None)
-    if name != DEFAULT_NAME:
-        for coverage in router.pipe(DEFAULT_NAME).coverage(list(dict.fromkeys(prompts))):
-            if route_line(coverage):
-                print(route_line(coverage), file=sys.stderr)
+    _, pipe, said = router.route([line.text for line in lines], one_motion=args.sequence is not None)
+    for line in said:
+        print(line, file=sys.stderr)
     return pipe
 
 

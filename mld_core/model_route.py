@@ -1,6 +1,7 @@
 """Auto: which bundled model makes a prompt.
 
     model_for(coverage)                       # the default's coverage of a prompt -> a bundled model's name
+    routed(coverages)                         # (the one model a call goes to, the lines saying why)
     ModelRouter(load).pipe_for(prompts)       # (name, pipeline) of the one model a call's prompts go to
 
 The default makes what it has learned. A prompt it has not learned (its coverage ``unknown`` or only ``near``) that
@@ -80,6 +81,16 @@ def model_for_call(coverages: Sequence, one_motion: bool) -> str:
                      "with --model")
 
 
+def routed(coverages: Sequence, one_motion: bool = False) -> tuple[str, list[str]]:
+    """(model_for_call of the default's ``coverages``, the route_line of each prompt that leaves the default, once
+    each; none when the call stays with the default)."""
+    name = model_for_call(coverages, one_motion)
+    if name == DEFAULT_NAME:
+        return name, []
+    lines = (route_line(c) for c in {c.prompt: c for c in coverages}.values())
+    return name, [line for line in lines if line]
+
+
 class ModelRouter:
     """The bundled models Auto chooses from, each loaded the first time a call goes to it by ``load(name)`` (each
     with its own text encoder, so a model's Draft keeps its own distilled one)."""
@@ -96,6 +107,10 @@ class ModelRouter:
 
     def pipe_for(self, prompts: Sequence[str], one_motion: bool = False) -> tuple[str, object]:
         """(name, pipeline) of the model the call's ``prompts`` go to (model_for_call; MixedRoute)."""
-        default = self.pipe(DEFAULT_NAME)
-        name = model_for_call(default.coverage(list(prompts)), one_motion)
-        return name, self.pipe(name)
+        name, pipe, _ = self.route(prompts, one_motion)
+        return name, pipe
+
+    def route(self, prompts: Sequence[str], one_motion: bool = False) -> tuple[str, object, list[str]]:
+        """(name, pipeline, the lines saying why: routed) of the model the call's ``prompts`` go to."""
+        name, lines = routed(self.pipe(DEFAULT_NAME).coverage(list(prompts)), one_motion)
+        return name, self.pipe(name), lines

@@ -169,10 +169,11 @@ def main(argv=None) -> int:
     from mld_core.pipeline import MLDPipeline
 
     torch.set_num_threads(args.threads)
+    from mld_core.bundled import DEFAULT_NAME
     from mld_core.model_route import ModelRouter, is_auto
 
     router = ModelRouter(MLDPipeline.from_pretrained) if is_auto(args.model) else None
-    pipe = router.pipe("default") if router else MLDPipeline.from_pretrained(args.model)
+    pipe = router.pipe(DEFAULT_NAME) if router else MLDPipeline.from_pretrained(args.model)
     whole = set(whole_trial_windows(args.data))
     rows, takes, start, redraw_s = [], [], time.perf_counter(), 0.0
     if args.vae_recon:

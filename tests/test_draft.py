@@ -169,6 +169,8 @@ def test_a_bad_draft_section_is_a_checkpoint_error(tmp_path):
                               ("text_layers", 0, "draft.text_layers"), ("text_layers", 2.5, "draft.text_layers"),
                               ("teacher_guidance", 0.5, "draft.teacher_guidance"),
                               ("teacher_guidance", "high", "draft.teacher_guidance"),
+                              ("teacher_verb_guide", "yes", "draft.teacher_verb_guide"),
+                              ("teacher_verb_guide", 1, "draft.teacher_verb_guide"),
                               ("timesteps", [981], "draft.timesteps"), ("timesteps", [481, 981], "draft.timesteps"),
                               ("timesteps", [981, 480], "draft.timesteps"), ("timesteps", "late", "draft.timesteps"),
                               ("timesteps", [981, True], "draft.timesteps"), ("timesteps", [[981], 601],

@@ -13,7 +13,7 @@ import pytest
 from mld_core.cli import main
 from mld_core.condition.coverage import Coverage
 from mld_core.model_route import (AUTO, MixedRoute, ModelRouter, is_auto, model_for, model_for_call, route_line,
-                                  verbs_to_route)
+                                  routed, verbs_to_route)
 from test_bundled_models import weights  # noqa: F401 - the fixture: a default and a model trained on jumps and crawls
 
 
@@ -42,6 +42,8 @@ def test_a_call_goes_to_one_model(weights):
     assert model_for_call([walk, walk], one_motion=False) == "default"
     assert model_for_call([jump, jump], one_motion=False) == "verbs"
     assert model_for_call([walk, jump], one_motion=True) == "verbs"  # a sequence: the model that makes every segment
+    assert routed([walk, walk]) == ("default", [])
+    assert routed([walk, jump, jump], one_motion=True) == ("verbs", [route_line(jump)])  # each prompt's line once
     with pytest.raises(MixedRoute, match=r"^auto: these prompts need different models \(default: prompts 1, 3; "
                                          r"verbs: prompt 2\): generate them apart, or name one with --model$"):
         model_for_call([walk, jump, walk], one_motion=False)
@@ -124,6 +126,10 @@ def test_the_panel_offers_auto_first_and_routes_a_request_on_the_worker(weights)
     assert [name for name, _, _ in model_choice.model_items()] == ["auto", "default", "verbs"]
     assert model_choice.chosen_model_dir("auto") == "auto" and model_choice.chosen_model_dir("auto", "/m") == "/m"
     assert model_choice.other_model_line("a person jumps", "unknown", "auto", False) == ""  # Auto goes there itself
+    assert model_choice.auto_line("a person jumps", "unknown", ("walk",)) == (
+        "Auto: verbs makes this prompt (trained to make a jump, which the default has not learned)")
+    assert model_choice.auto_line("a person kicks", "near", ("kick",)) == ""
+    assert model_choice.auto_line("a person jumps", "unavailable", ()) == ""
 
     loaded = []
 
@@ -145,6 +151,9 @@ def test_the_panel_offers_auto_first_and_routes_a_request_on_the_worker(weights)
     sequence = {"sequence": [("a person walks", 2.0), ("a person jumps", 2.0)]}
     assert model_choice.pipe_for_request(cache, request("a person walks", extra=sequence)).folder == "verbs"
     assert loaded == [None, "verbs"]  # both kept: Auto moves between them without loading again
+    assert model_choice.route_request(cache, request("a person jumps"))[1] == [
+        "auto: verbs makes this prompt (trained to make a jump, which the default has not learned)"]
+    assert model_choice.route_request(cache, request("a person walks"))[1] == []
     with pytest.raises(ValueError, match="^Auto chose verbs for this prompt and it has no Draft: use Final$"):
         model_choice.pipe_for_request(cache, request("a person jumps", draft=True))
     assert model_choice.pipe_for_request(cache, request("a person jumps", model_dir="verbs")).folder == "verbs"

@@ -10,7 +10,7 @@ from __future__ import annotations
 import bpy
 
 from ..worker.coverage_watch import CoverageWatcher, badge_lines, coverage_line
-from ..worker.model_choice import folder_override_for, other_model_line
+from ..worker.model_choice import auto_line, folder_override_for, other_model_line
 from ..env import missing_modules
 
 POLL_S = 0.1
@@ -76,11 +76,11 @@ def draw_coverage(layout, settings, context) -> None:
             watcher().request(text, key)  # e.g. a file opened with a prompt in it
         layout.label(text="Checking the prompt ...", icon="TIME")
         return
-    from mld_core.model_route import is_auto, route_line
+    from mld_core.model_route import is_auto
 
-    routed = route_line(cov) if is_auto(key[0]) and cov.verdict != "unavailable" else ""
+    routed = auto_line(text, cov.verdict, tuple(cov.known_contents)) if is_auto(key[0]) else ""
     if routed:  # Auto sends the prompt to the bundled model trained on its verbs
-        layout.label(text=routed[0].upper() + routed[1:], icon="INFO")
+        layout.label(text=routed, icon="INFO")
         return
     line = coverage_line(cov)
     if line is not None:

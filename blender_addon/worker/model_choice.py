@@ -9,7 +9,7 @@ from functools import lru_cache
 from mld_core import bundled
 from mld_core.bundled import DEFAULT_NAME, UnknownModel, bundled_models, model_folder, model_id_in
 from mld_core.inputs import model_limits
-from mld_core.model_route import AUTO, is_auto, model_for_call
+from mld_core.model_route import AUTO, is_auto, route_line, routed
 
 AUTO_TIP = ("Auto: the default model, and for a prompt it has not learned that asks for a jump, a crawl, a fall, ... "
             "the bundled model trained to make it")
@@ -64,19 +64,34 @@ def has_draft(model_dir: str | None) -> bool:
 
 
 def pipe_for_request(cache, request):
-    """The pipeline a request runs on (``cache`` a model_cache.PipelineCache): its model folder's; under Auto the
-    bundled model its prompt (a sequence: its segments, together) goes to. A Draft asked of a model without one
+    """The pipeline a request runs on (``cache`` a model_cache.PipelineCache): route_request's."""
+    return route_request(cache, request)[0]
+
+
+def route_request(cache, request) -> tuple[object, list[str]]:
+    """(the pipeline a request runs on, the lines saying why Auto left the default): its model folder's; under Auto
+    the bundled model its prompt (a sequence: its segments, together) goes to. A Draft asked of a model without one
     raises ValueError naming the model Auto chose."""
     if not is_auto(request.model_dir):
-        return cache.get(request.model_dir, request.device, request.threads)
+        return cache.get(request.model_dir, request.device, request.threads), []
     sequence = request.extra.get("sequence") if isinstance(request.extra, dict) else None
     prompts = [p for p, _ in sequence] if sequence else [request.prompt]
     default = cache.get(None, request.device, request.threads)
-    name = model_for_call(default.coverage(prompts), one_motion=True)
+    name, said = routed(default.coverage(prompts), one_motion=True)
     pipe = default if name == DEFAULT_NAME else cache.get(name, request.device, request.threads)
     if request.draft and getattr(pipe, "draft_denoiser", None) is None:
         raise ValueError(f"Auto chose {name} for this prompt and it has no Draft: use Final")
-    return pipe
+    return pipe, said
+
+
+@lru_cache(maxsize=64)
+def auto_line(prompt: str, verdict: str, known_contents: tuple) -> str:
+    """The panel's line under a prompt under Auto ('' when it stays with the default), from the default's
+    coverage verdict and contents; cached, as the panel draws it on every redraw."""
+    from mld_core.condition.coverage import Coverage
+
+    line = route_line(Coverage(prompt, 0.0, verdict, [], list(known_contents)))
+    return line[:1].upper() + line[1:]
 
 
 @lru_cache(maxsize=64)

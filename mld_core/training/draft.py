@@ -191,10 +191,11 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
     unit_captions = [np.array([caption_index[c] for c in u.captions]) for u in units]
 
     # 2. Teacher (frozen), student (the teacher plus a guidance input), its EMA target.
-    teacher = LatentDenoiser(base.denoiser)
-    load_weights(teacher_dir / "denoiser.safetensors", teacher)
-    teacher.eval().requires_grad_(False)
     fold = load_verb_fold(teacher_dir, base, teacher_dir, captions, rt.device) if cfg.fold_verb_guide else None
+    teacher = fold.teacher if fold is not None else LatentDenoiser(base.denoiser)  # the fold loads the teacher
+    if fold is None:
+        load_weights(teacher_dir / "denoiser.safetensors", teacher)
+    teacher.eval().requires_grad_(False)
     draft = DraftConfig(denoiser=copy.deepcopy(base.denoiser), num_inference_steps=cfg.draft_steps,
                         original_steps=cfg.original_steps, guidance_min=cfg.guidance_min,
                         guidance_max=cfg.guidance_max, guidance_scale=cfg.default_guidance,
