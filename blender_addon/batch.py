@@ -106,7 +106,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "times (default: the model's, 2; 0: never, as takes made before 2026-11-27)")
     parser.add_argument("--verb-redraws", type=int, default=None, metavar="N",
                         help="a take that does not show the checked verb its prompt names (a jump, a crawl, a kick) "
-                             "is drawn again from its seed, at most N times (default: the model's; 0: never)")
+                             "is drawn again from its seed, at most N times (default: the model's, a Draft's own "
+                             "where its config sets one; 0: never)")
     parser.add_argument("--draft", action="store_true",
                         help="Draft mode: the model's distilled denoiser and a guided step of its own (about 10x faster)")
     parser.add_argument("--model", metavar="DIR", help="model folder, a bundled model's name, e.g. v4_preview, or "

@@ -71,6 +71,8 @@ class DraftConfig:
     #                                None: spread evenly. With a teacher step, the last is where the teacher takes over
     teacher_verb_guide: bool = False  # the teacher steps carry the verb denoiser's term too (config verb_guide), at
     #                                   its scale x teacher_guidance / the model's guidance_scale
+    verb_redraws: int | None = None  # a Draft take's verb redraws (None: the model's verb_redraws); a Draft's draw
+    #                                  costs about a tenth of the Final's, so it can afford more
 
     def __post_init__(self):
         if isinstance(self.denoiser, dict):
@@ -306,6 +308,10 @@ def _check_draft(draft: DraftConfig, scheduler: SchedulerConfig) -> None:
         raise ValueError(f"draft.text_layers must be null or a whole number above 0, got {layers!r}")
     if not isinstance(draft.teacher_verb_guide, bool):
         raise ValueError(f"draft.teacher_verb_guide must be true or false, got {draft.teacher_verb_guide!r}")
+    redraws = draft.verb_redraws
+    if redraws is not None and (isinstance(redraws, bool) or not isinstance(redraws, int)
+                                or not 0 <= redraws <= MAX_VERB_REDRAWS):
+        raise ValueError(f"draft.verb_redraws must be null or a whole number in 0..{MAX_VERB_REDRAWS}, got {redraws!r}")
     if draft.timesteps is not None:
         try:
             LCMScheduler(scheduler, grid).checked_timesteps(

@@ -341,8 +341,8 @@ def register(groups) -> None:
                         "hand) is drawn again from its seed, at most N times (default: the model's, 2; 0: never)")
     p.add_argument("--verb-redraws", type=int, default=None, metavar="N",
                    help="a take that does not show the checked verb its prompt names (a jump for 'jumps', a crawl, a "
-                        "kick: docs/library.md) is drawn again from its seed, at most N times (default: the model's; "
-                        "0: never)")
+                        "kick: docs/library.md) is drawn again from its seed, at most N times (default: the model's, "
+                        "a Draft's own where its config sets one; 0: never)")
     p.add_argument("--variants", type=int, default=1, help="motions per prompt (seeds seed, seed+1, ...)")
     p.add_argument("--best", type=int, default=None, metavar="K",
                    help="score every variant (adherence, skating, float, penetration, jitter: docs/quality.md), "

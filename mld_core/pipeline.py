@@ -404,8 +404,9 @@ class MLDPipeline:
         - ``side_redraws`` (default: config ``side_redraws``): a free take that misses the side its prompt names is
           drawn again, at most this often; ``draw`` k starts each row from the (k+1)-th z_T of its seed
           (``out.draws`` says which draw each row is, ``out.redrawn_for`` which redraw drew it).
-        - ``verb_redraws`` (default: config ``verb_redraws``): a free take that does not show the checked verbs its
-          prompt names (mld_core.take_fixes.verb_redraw) is drawn again, at most this often.
+        - ``verb_redraws`` (default: config ``verb_redraws``, a Draft's ``draft.verb_redraws`` where set): a free take
+          that does not show the checked verbs its prompt names (mld_core.take_fixes.verb_redraw) is drawn again, at
+          most this often.
         - ``rank``: every row scored (``out.badges``), each prompt's variants best first."""
         t_start, timings = time.perf_counter(), {}
         # 1. Inputs, checked before any work: one row per (prompt, variant), each with its own seed.
@@ -486,7 +487,7 @@ class MLDPipeline:
         draw = inputs.int_in_range(draw, "draw", 0, 1000)
         redraws = self.config.side_redraws if side_redraws is None else \
             inputs.int_in_range(side_redraws, "side_redraws", 0, inputs.MAX_SIDE_REDRAWS)
-        verb_redraws = self.config.verb_redraws if verb_redraws is None else \
+        verb_redraws = self.default_verb_redraws(draft) if verb_redraws is None else \
             inputs.int_in_range(verb_redraws, "verb_redraws", 0, inputs.MAX_VERB_REDRAWS)
         _check_constraints(constraints, frames)
         return _Call(cond_kind, draft, prompts=[prompts[i] for i, _ in rows],
@@ -496,6 +497,11 @@ class MLDPipeline:
                      teacher_steps=min(self.config.draft.teacher_steps, steps - 1) if draft else 0,
                      num_variants=num_variants, draw=draw, side_redraws=redraws if cond_kind == "text" else 0,
                      verb_redraws=verb_redraws if cond_kind == "text" else 0)
+
+    def default_verb_redraws(self, draft: bool) -> int:
+        """A call's verb redraws when it names none: a Draft's own (config draft.verb_redraws), else the model's."""
+        own = self.config.draft.verb_redraws if draft and self.config.draft is not None else None
+        return self.config.verb_redraws if own is None else own
 
     def _conditions(self, call: _Call) -> Conditions:
         """Stage 2: the sampling denoiser's condition and null tokens, and a Draft's teacher's own."""

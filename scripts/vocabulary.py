@@ -19,7 +19,7 @@ every take's prompt, seed, pass, draw, lowest joint and foot float. The ``low cm
 row's takes of each take's lowest joint height, in cm (every prepared clip has its lowest joint on the floor, 0: below
 0 the take sinks into the floor, above it hovers all take long); ``float`` the mean of their foot float badge (the
 share of frames with no toe on the floor outside jumps: ``mld_core.eval.quality.foot_float``); each followed by the
-real windows' figure. ``--verb-redraws`` (default: the model's config ``verb_redraws``) draws a take that misses its prompt's verb again: 0 measures the model alone, as v4's targets do; the model's own count
+real windows' figure. ``--verb-redraws`` (default: the model's config ``verb_redraws``, with ``--draft`` its ``draft.verb_redraws`` where set) draws a take that misses its prompt's verb again: 0 measures the model alone, as v4's targets do; the model's own count
 measures what a user gets, with the share of takes drawn again and the seconds spent on it. ``--vae-recon`` generates nothing: it passes the real windows through the
 model's VAE and prints each verb's pass rate before and after (the ceiling a denoiser on that VAE can reach; a
 VAE-only run folder works), with the median value of the verb's check before and after (a throw's peak wrist speed
@@ -142,7 +142,7 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--verb-redraws", type=int, default=None, metavar="N",
-                    help="draws of a take beyond its first when it misses its prompt's verb (default: the model's "
+                    help="draws of a take beyond its first when it misses its prompt's verb (default: the model's (a Draft's own where set) "
                          "config verb_redraws; 0: the model alone)")
     ap.add_argument("--draft", action="store_true", help="the model's Draft (docs/draft.md) instead of its Final")
     ap.add_argument("--vae-recon", action="store_true",
@@ -195,7 +195,7 @@ def main(argv=None) -> int:
     if missing:
         print(f"error: this action-conditioned model has no label {', '.join(missing)}", file=sys.stderr)
         return 2
-    redraws = pipe.config.verb_redraws if args.verb_redraws is None else args.verb_redraws
+    redraws = pipe.default_verb_redraws(args.draft) if args.verb_redraws is None else args.verb_redraws
     model = "auto" if router else pipe.model_id
     print(f"model {model}{' (Draft)' if args.draft else ''}; {args.seeds} seeds x {args.seconds:g} s"
           + (" (action labels)" if by_action else "")
@@ -216,7 +216,7 @@ def main(argv=None) -> int:
                 maker = router.pipe_for([prompt])[1] if router else pipe
                 out = maker([prompt], seconds=args.seconds, seed=0, num_variants=args.seeds, draft=args.draft,
                             **actions,
-                            verb_redraws=maker.config.verb_redraws if args.verb_redraws is None else redraws)
+                            verb_redraws=args.verb_redraws)  # None: the maker's own (a Draft's where set)
                 redraw_s += out.timings.get("verb_redraws_s", 0.0)
                 for v in range(len(out.joints)):
                     joints = out.joints[v, : out.lengths[v]]

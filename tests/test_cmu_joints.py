@@ -441,3 +441,30 @@ def test_the_vocabulary_benchmark_reads_real_windows_through_a_vae(clips, tmp_pa
     assert real_ok and real_value > 0  # the hop flies
     assert (row["real"], row["real_median_value"]) == (1.0, pytest.approx(real_value))
     assert row["vae_recon"] in (0.0, 1.0) and np.isfinite(row["vae_recon_median_value"])
+
+
+def test_the_vocabulary_benchmark_measures_a_draft_with_its_own_verb_redraws(clips, tmp_path, capsys, monkeypatch):
+    """scripts/vocabulary.py --draft without --verb-redraws: the Draft's own count (config draft.verb_redraws), not
+    the Final's."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "scripts"))
+    import vocabulary
+
+    from mld_core.eval import physical
+    from mld_core.testing import tiny_model
+
+    out = tmp_path / "data"
+    assert prepare(source(tmp_path / "cmu", clips), out, capsys)[0] == 0
+    model = tiny_model(tmp_path / "text", draft=True)
+    config = json.loads((model / "config.json").read_text())
+    config["verb_redraws"], config["draft"]["verb_redraws"] = 0, 1
+    (model / "config.json").write_text(json.dumps(config))
+    argv = ["--data", str(out), "--model", str(model), "--seeds", "2", "--seconds", "2", "--threads", "1",
+            "--verbs", "jump", "--json", str(tmp_path / "v.json")]
+    monkeypatch.setattr(physical, "shows", lambda joints, verb, fps=20.0, result=None: False)  # every draw misses
+    assert vocabulary.main(argv + ["--draft"]) == 0
+    report = json.loads((tmp_path / "v.json").read_text())
+    assert report["verb_redraws"] == 1 and report["redraw_s"] > 0
+    assert "(Draft)" in capsys.readouterr().out
+    assert vocabulary.main(argv) == 0  # the Final: the model's 0
+    report = json.loads((tmp_path / "v.json").read_text())
+    assert report["verb_redraws"] == 0 and report["redraw_s"] == 0

@@ -209,3 +209,30 @@ def test_a_ranked_take_whose_verb_badge_says_missed_is_a_warning_without_redraws
     shown = pipe(JUMP, 2.0, seed=5, verb_redraws=0, rank=True)
     assert shown.badges[0].verb == "shown" and take_report.side_lines(shown) == []
     assert take_report.side_lines(pipe(JUMP, 2.0, seed=5, verb_redraws=0)) == []
+
+
+def test_a_draft_draws_again_as_often_as_its_own_config_says_and_the_final_as_the_models(tmp_path, monkeypatch):
+    pipe = tiny_pipeline(tmp_path, draft=True)
+    pipe.config.verb_redraws, pipe.config.draft.verb_redraws = 1, 3
+    check_config(pipe.config)
+    assert json.loads(json.dumps(pipe.config.to_dict()))["draft"]["verb_redraws"] == 3
+    monkeypatch.setattr(physical, "shows", lambda joints, verb, fps=20.0: False)  # no draw shows the jump
+    seen = []
+    real_init = VerbRedraw.__init__
+
+    def counting_init(self, redraws, *args, **kwargs):
+        seen.append(redraws)
+        real_init(self, redraws, *args, **kwargs)
+
+    monkeypatch.setattr(VerbRedraw, "__init__", counting_init)
+    out = pipe(JUMP, 2.0, seed=1, draft=True, side_redraws=0)
+    assert out.redrawn_for == ["verb missed"]
+    pipe(JUMP, 2.0, seed=1, side_redraws=0, step=False)
+    pipe(JUMP, 2.0, seed=1, draft=True, side_redraws=0, verb_redraws=2)  # the call's own wins
+    pipe.config.draft.verb_redraws = None  # unset: the Draft draws again as the model does
+    pipe(JUMP, 2.0, seed=1, draft=True, side_redraws=0)
+    assert seen == [3, 1, 2, 1]
+    for bad in (9, -1, True, 1.5):
+        pipe.config.draft.verb_redraws = bad
+        with pytest.raises(ValueError, match="draft.verb_redraws must be null or a whole number in 0..8"):
+            check_config(pipe.config)
