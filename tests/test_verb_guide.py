@@ -208,6 +208,37 @@ def test_guiding_an_interval_of_the_steps_adds_the_term_there_only(folders, monk
     assert interval.main(["--interval", "0.5", "0.5", "--", "--data", "x"]) == 2
 
 
+def test_a_verb_term_reused_between_steps_is_computed_on_every_nth_guided_step(folders, monkeypatch):
+    """research/v4/verb_guide_interval.py --every N: the verb denoiser runs on guided steps 0, N, 2N, ... and its term
+    is added unchanged on the steps between; --every 1 is the guided take exactly; a prompt naming no verb is
+    untouched; N below 1 is refused."""
+    interval = _interval_script()
+    text, _, guided = folders
+    kw = dict(seconds=2.0, seed=5, num_inference_steps=4, repair=False, side_redraws=0)
+    plain = MLDPipeline.from_pretrained(text)(PROMPTS, **kw).joints
+    full = MLDPipeline.from_pretrained(guided)(PROMPTS, **kw).joints
+    monkeypatch.setattr(MLDPipeline, "_verb_guidance", MLDPipeline._verb_guidance)  # restored after the test
+    runs = []
+    monkeypatch.setattr(VerbGuidance, "add_to", _counting(VerbGuidance.add_to, runs))
+    interval.guide_only_on(0.0, 1.0, every=1)
+    assert np.array_equal(MLDPipeline.from_pretrained(guided)(PROMPTS, **kw).joints, full) and len(runs) == 4
+    runs.clear()
+    interval.guide_only_on(0.0, 1.0, every=2)
+    reused = MLDPipeline.from_pretrained(guided)(PROMPTS, **kw).joints
+    assert len(runs) == 2  # steps 0 and 2 of 4
+    assert np.array_equal(reused[1], plain[1])
+    for row in (0, 2):
+        assert not np.allclose(reused[row], full[row], atol=1e-5) and not np.allclose(reused[row], plain[row], atol=1e-5)
+    assert interval.main(["--every", "0", "--", "--data", "x"]) == 2
+
+
+def _counting(add_to, runs):
+    def counted(self, eps, z, t, lengths):
+        runs.append(int(t))
+        return add_to(self, eps, z, t, lengths)
+    return counted
+
+
 def test_attaching_into_a_folder_another_run_took_meanwhile_keeps_that_run_s_folder(folders, tmp_path, capsys):
     """Two runs racing for one new --out: the later one says so and leaves the first one's folder as it was."""
     import importlib.util
