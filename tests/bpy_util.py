@@ -40,6 +40,23 @@ def result_line() -> str:
     )
 
 
+# The start of a script that uses the add-on from this checkout (``{tests}`` for the test helpers): a factory-fresh
+# Blender with the add-on enabled. Joined before a script's own lines, formatted with repo= and tests=.
+ADDON_PRELUDE = r"""
+import sys
+sys.path.insert(0, {repo!r})
+sys.path.insert(0, {tests!r})
+import bpy, addon_utils
+bpy.ops.wm.read_factory_settings(use_empty=True)
+addon_utils.enable("blender_addon", default_set=True)
+"""
+
+
+def addon_script(body: str) -> str:
+    """``ADDON_PRELUDE`` + ``body``, formatted for this checkout (``body`` doubles its literal braces)."""
+    return (ADDON_PRELUDE + body).format(repo=str(REPO), tests=str(REPO / "tests"))
+
+
 def bpy_env(user_dir: Path, **extra) -> dict:
     env = dict(os.environ)
     env["BLENDER_USER_RESOURCES"] = str(user_dir)

@@ -6,17 +6,11 @@ from __future__ import annotations
 
 import pytest
 
-from bpy_util import REPO, requires_bpy, run_bpy_script
+from bpy_util import REPO, addon_script, requires_bpy, run_bpy_script
 
 pytestmark = [pytest.mark.bpy, requires_bpy]
 
 SCRIPT = r"""
-import sys
-sys.path.insert(0, {repo!r})
-sys.path.insert(0, {tests!r})
-import bpy, addon_utils
-bpy.ops.wm.read_factory_settings(use_empty=True)
-addon_utils.enable("blender_addon", default_set=True)
 from blender_addon.ui import operators, panels
 from blender_addon.ui import quality_panel as quality_ui
 from recording_layout import Host, Layout
@@ -51,7 +45,7 @@ def _labels(calls):
 
 
 def test_the_panel_chooses_a_bundled_model_and_says_when_it_has_no_draft(tmp_path):
-    r = run_bpy_script(SCRIPT.format(repo=str(REPO), tests=str(REPO / "tests")), tmp_path, timeout=120,
+    r = run_bpy_script(addon_script(SCRIPT), tmp_path, timeout=120,
                        MLD_MODEL_DIR="")
     no_draft = "This model has no Draft: use Final (Live Preview needs a Draft)"
     assert r["start"] == "auto"  # a new scene starts on Auto
@@ -71,7 +65,7 @@ def test_a_folder_set_outside_the_panel_wins_and_is_named(tmp_path):
     from mld_core.testing import tiny_model
 
     model = tiny_model(tmp_path / "studio_model")
-    r = run_bpy_script(SCRIPT.format(repo=str(REPO), tests=str(REPO / "tests")), tmp_path, timeout=120,
+    r = run_bpy_script(addon_script(SCRIPT), tmp_path, timeout=120,
                        MLD_MODEL_DIR=str(model))
     for choice in ("auto", "default", "v4_preview"):
         assert r[choice]["request"] == str(model) == r[choice]["key"]
@@ -83,12 +77,6 @@ def test_a_folder_set_outside_the_panel_wins_and_is_named(tmp_path):
 
 
 ROUTE_SCRIPT = r"""
-import sys
-sys.path.insert(0, {repo!r})
-sys.path.insert(0, {tests!r})
-import bpy, addon_utils
-bpy.ops.wm.read_factory_settings(use_empty=True)
-addon_utils.enable("blender_addon", default_set=True)
 from blender_addon.ui import quality_panel as quality_ui
 from recording_layout import Layout
 
@@ -114,7 +102,7 @@ def test_under_auto_the_panel_says_which_model_makes_the_prompt(tmp_path):
     """Auto: the line under a prompt the default has not learned that names a verb the preview is trained on says
     the preview makes it (and points to no other model); other prompts and the default's own choice are
     drawn as before."""
-    r = run_bpy_script(ROUTE_SCRIPT.format(repo=str(REPO), tests=str(REPO / "tests")), tmp_path, timeout=180,
+    r = run_bpy_script(addon_script(ROUTE_SCRIPT), tmp_path, timeout=180,
                        MLD_MODEL_DIR="")
     assert r["auto: a person jumps over a puddle"] == [
         "Auto: v4_preview makes this prompt (trained to make a jump, which the default has not learned)"]

@@ -6,18 +6,13 @@ from __future__ import annotations
 
 import pytest
 
-from bpy_util import REPO, requires_bpy, run_bpy_script
+from bpy_util import REPO, addon_script, requires_bpy, run_bpy_script
 from mld_core.eval import quality
 
 pytestmark = [pytest.mark.bpy, requires_bpy]
 
 SCRIPT = r"""
-import sys, time
-sys.path.insert(0, {repo!r})
-sys.path.insert(0, {tests!r})
-import bpy, addon_utils
-bpy.ops.wm.read_factory_settings(use_empty=True)
-addon_utils.enable("blender_addon", default_set=True)
+import time
 from blender_addon.ui import panels
 from blender_addon.ui import quality_panel as quality_ui
 from recording_layout import Host, Layout
@@ -84,7 +79,7 @@ def tiny_with_index(tmp_path_factory):
 
 
 def test_actions_carry_coverage_and_badges_and_the_panel_shows_them(tmp_path, tiny_with_index):
-    r = run_bpy_script(SCRIPT.format(repo=str(REPO), tests=str(REPO / "tests")), tmp_path, timeout=180,
+    r = run_bpy_script(addon_script(SCRIPT), tmp_path, timeout=180,
                        MLD_MODEL_DIR=tiny_with_index)
     assert r["generate"] == ["FINISHED"] and r["assigned"]
     props = r["props"]
