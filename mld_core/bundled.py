@@ -13,6 +13,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from mld_core.data import terms
+
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 DEFAULT_NAME = "default"
 MODEL_FORMAT = "mld-core-model"  # config.json's "format" (mld_core.checkpoint.FORMAT is this)
@@ -35,6 +37,17 @@ def model_id_in(folder: Path) -> str | None:
     """The model id in a model folder's config.json; None when it is not a generation model's."""
     data = _generation_config(folder)
     return None if data is None else str(data.get("model_id") or folder.name)
+
+
+def weights_use(folder: Path) -> str:
+    """What a model folder's weights may be used for, in a few words (config.json's ``training_data``;
+    mld_core.data.terms): a folder that does not record it is of unknown terms."""
+    data = _generation_config(Path(folder)) or {}
+    try:
+        sources = terms.checked(data.get("training_data"))
+    except ValueError:
+        sources = [terms.unrecorded(Path(folder).name)]
+    return terms.use_label(sources)
 
 
 def bundled_models() -> dict[str, str]:

@@ -17,6 +17,7 @@ from safetensors.torch import load_file, save_file
 from mld_core.bundled import DEFAULT_NAME, MODEL_FORMAT, WEIGHTS_DIR
 from mld_core.condition import side_contrast
 from mld_core.condition.content_anchor import ContentAnchorConfig
+from mld_core.data import terms
 from mld_core.fileio import atomic_write
 from mld_core.inputs import MAX_SIDE_REDRAWS, MAX_VERB_REDRAWS
 from mld_core.models.denoiser import DenoiserConfig
@@ -128,6 +129,9 @@ class ModelConfig:
     commands_as_sentences: bool = True
     draft: DraftConfig | None = None  # a Draft denoiser in draft.safetensors (pipe(..., draft=True))
     verb_guide: VerbGuideConfig | None = None  # a verb denoiser in verb_denoiser.safetensors (Final's text takes)
+    # whose terms the weights carry: every data folder and model its weights were trained on or from
+    # (mld_core.data.terms); None: not recorded (its terms unknown)
+    training_data: list | None = None
     provenance: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -153,6 +157,8 @@ class ModelConfig:
             self.draft = DraftConfig(**self.draft)
         if isinstance(self.verb_guide, dict):
             self.verb_guide = VerbGuideConfig(**self.verb_guide)
+        if self.training_data is not None:
+            self.training_data = terms.checked(self.training_data)
 
     def to_dict(self) -> dict:
         return {"format": FORMAT, "format_version": FORMAT_VERSION, **asdict(self)}

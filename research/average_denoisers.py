@@ -32,6 +32,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from mld_core.checkpoint import CheckpointError, load_config, save_json  # noqa: E402
+from mld_core.data import terms  # noqa: E402
 
 
 def check_compatible(folders: list[Path]) -> None:
@@ -81,6 +82,7 @@ def average_denoisers(folders: list[Path], out: Path, weights: list[float], mode
         ids = [json.loads((f / "config.json").read_text()).get("model_id") or f.name for f in folders]
         record = {"models": ids, "weights": weights, **({"modules": list(only)} if only else {})}
         cfg.setdefault("provenance", {})["denoiser_average"] = record
+        cfg["training_data"] = terms.union(*(terms.of_model(load_config(f)) for f in folders))
         if model_id:
             cfg["model_id"] = model_id
         save_json(staged / "config.json", cfg)

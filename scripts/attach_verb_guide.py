@@ -25,6 +25,7 @@ sys.path.insert(0, str(REPO))
 
 from mld_core.checkpoint import (VERB_WEIGHTS, CheckpointError, VerbGuideConfig, load_config,  # noqa: E402
                                  load_weights, save_json, save_weights)
+from mld_core.data import terms  # noqa: E402
 from mld_core.data.verbs import VERBS  # noqa: E402
 from mld_core.fileio import build_new_folder  # noqa: E402
 from mld_core.inputs import InputError  # noqa: E402
@@ -65,6 +66,7 @@ def attach(config, action_dir: Path, action, out: Path, scale: float) -> None:
     config.verb_guide = VerbGuideConfig(action.denoiser, list(action.actions), scale)
     config.provenance = {**config.provenance, "verb_guide": {"model_id": action.model_id,
                                                              "training": action.provenance.get("denoiser_training")}}
+    terms.add_to(config, terms.of_model(action))
     save_weights(out / VERB_WEIGHTS, denoiser, torch.float16)
     card = out / "MODEL_CARD.md"
     if card.is_file():

@@ -21,6 +21,7 @@ sys.path.insert(0, str(REPO))
 from mld_core import inputs  # noqa: E402
 from mld_core.condition import content_anchor  # noqa: E402
 from mld_core.checkpoint import DEFAULT_MODEL_DIR, CheckpointError, load_config, save_json  # noqa: E402
+from mld_core.data import terms  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -66,6 +67,7 @@ def build(args) -> int:
         config.content_anchor = settings
     config.provenance["content_anchor_build"] = {"rewordings": rewordings, "texts": len(texts),
                                                  "contents": len(anchor.classes), **fit_settings}
+    terms.add_to(config, terms.of_folder(args.data))
     save_json(args.model / "config.json", config.to_dict())
     print(f"wrote {path}: {len(anchor.classes)} contents from {len(texts)} captions and rewordings "
           f"in {time.perf_counter() - t0:.1f} s")

@@ -18,7 +18,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from mld_core.condition import coverage  # noqa: E402
-from mld_core.checkpoint import DEFAULT_MODEL_DIR, load_config  # noqa: E402
+from mld_core.checkpoint import DEFAULT_MODEL_DIR, load_config, save_json  # noqa: E402
+from mld_core.data import terms  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -37,6 +38,8 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     index = coverage.build_for_folder(args.data, load_text_encoder(config.text_encoder), args.split)
     path = index.save(args.model / coverage.INDEX_NAME)
+    terms.add_to(config, terms.of_folder(args.data))  # the index holds its captions' vectors
+    save_json(args.model / "config.json", config.to_dict())
     print(f"wrote {path}: {len(index)} normalised captions, {len(index.known_contents)} contents, "
           f"{path.stat().st_size / 1e6:.2f} MB in {time.perf_counter() - t0:.1f} s")
     return 0

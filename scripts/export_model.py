@@ -38,6 +38,7 @@ sys.path.insert(0, str(REPO))
 
 from mld_core.checkpoint import (DEFAULT_MODEL_DIR, DRAFT_TEXT_WEIGHTS, VERB_WEIGHTS, CheckpointError,  # noqa: E402
                                  load_config, load_weights, save_model)
+from mld_core.data import terms  # noqa: E402
 from mld_core.fileio import make_parents  # noqa: E402
 from mld_core.inputs import InputError, check_output_folder, parse_json  # noqa: E402
 from mld_core.models.denoiser import LatentDenoiser  # noqa: E402
@@ -51,7 +52,7 @@ Motion Latent Diffusion (Chen et al., CVPR 2023) {cond}-to-motion model, {origin
 | | |
 |---|---|
 | data | {data} |
-| licence | **CC BY-NC 4.0** (non-commercial), inherited from the training data; attribution: Bandai Namco Research Inc., Kobayashi et al. 2023, "Motion Capture Dataset for Practical Use of AI-based Motion Editing and Stylization" |
+| licence | {licence} |
 | text encoder | all-MiniLM-L6-v2 (frozen; Apache-2.0), pooled vector + {pool} attention-pooled token features |
 | VAE | latent {n} x {d}; encoder/decoder {vae_layers} layers each, d {d}, 4 heads, ff 1024, long skips: {skip} |
 | denoiser | {den_layers} layers, d {den_d}, condition: {reads}, target-length conditioning: {length} |
@@ -85,7 +86,7 @@ denoiser --vae FOLDER`). It does not generate from text by itself.
 | | |
 |---|---|
 | data | `{data}` (its sittings' data folders are listed below) |
-| licence | that of its training data: weights trained on the Bandai Namco dataset, or started from a model that was, are **CC BY-NC 4.0** (non-commercial) |
+| licence | {licence} |
 | VAE | latent {n} x {d}; encoder/decoder {layers} layers each, d {dim}, long skips: {skip}; KL weight {kl:g} |
 | steps | {own} in its own sitting, {steps} over the {sittings} sittings below |
 | weights | fp16 safetensors, {size_mb:.1f} MB |
@@ -110,6 +111,22 @@ def card_origin(config) -> str:
     Training section names."""
     training = config.provenance.get("denoiser_training") or {}
     return "fine-tuned from the weights named under Training" if training.get("init") else "trained from scratch"
+
+
+ATTRIBUTIONS = {
+    terms.BANDAI["name"]: 'attribution: Bandai Namco Research Inc., Kobayashi et al. 2023, "Motion Capture Dataset '
+                          'for Practical Use of AI-based Motion Editing and Stylization"',
+    terms.CMU["name"]: 'CMU: "The data used in this project was obtained from mocap.cs.cmu.edu. The database was '
+                       'created with funding from NSF EIA-0196217."',
+    terms.KIT["name"]: 'KIT-ML: Plappert, Mandery and Asfour, "The KIT Motion-Language Dataset", Big Data 4(4), 2016',
+}
+
+
+def card_licence(config) -> str:
+    """The card's licence row: whose terms the weights carry (config ``training_data``) and the attributions."""
+    sources = terms.of_model(config)
+    credits = [ATTRIBUTIONS[e["name"]] for e in sources if e["name"] in ATTRIBUTIONS]
+    return "; ".join([terms.licence_summary(sources), *credits])
 
 
 def card_limits(notes: str) -> str:
@@ -137,6 +154,7 @@ def vae_card(config, vae, notes: str) -> str:
     steps = sum(int(s.get("steps") or 0) for s in sittings)
     enc = config.vae.encoder
     return VAE_CARD.format(model_id=config.model_id, data=(config.provenance.get("vae_training") or {}).get("data"),
+                           licence=card_licence(config),
                            n=config.vae.latent_tokens, d=config.vae.latent_dim, layers=enc.layers, dim=enc.dim,
                            skip=enc.skip, kl=config.vae.kl_weight, steps=f"{steps:,}", sittings=len(sittings),
                            own=f"{int(sittings[-1].get('steps') or 0):,}",
@@ -170,6 +188,7 @@ def swap_decoder(config, vae: MotionVAE, vae_run: Path) -> None:
     take_decoder(vae, donor)
     prov = donor_config.provenance
     config.provenance["vae_decoder_training"] = prov.get("vae_training")
+    terms.add_to(config, terms.of_model(donor_config))
     for key in ("vae_val_mpjpe_mm", "vae_val_global_mpjpe_mm", "vae_steps"):
         config.provenance[f"{key}_decoder"] = prov.get(key)
 
@@ -288,6 +307,8 @@ def main(argv=None) -> int:
         return 2
     if args.model_id:
         config.model_id = args.model_id
+    if not vae_only and args.data is not None and not (args.run / "coverage_index.npz").is_file():
+        terms.add_to(config, terms.of_folder(args.data))  # the coverage index is built from its captions
     if vae_only:
         return write_folder(args.out, config, vae, None, vae_card(config, vae, metrics), args.run)
     prov = config.provenance
@@ -301,7 +322,7 @@ def main(argv=None) -> int:
                        steps=config.num_inference_steps, guidance=config.guidance_scale,
                        min_s=config.min_frames / config.fps, max_s=config.max_frames / config.fps, size_mb=size,
                        training=training, metrics=metrics, hardware=args.hardware, origin=card_origin(config),
-                       data=args.data_description, limits=card_limits(metrics))
+                       data=args.data_description, limits=card_limits(metrics), licence=card_licence(config))
     return write_folder(args.out, config, vae, den, card, args.run, args.data)
 
 

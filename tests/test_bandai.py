@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mld_core.cli import main
-from mld_core.data import bandai, captions
+from mld_core.data import bandai, captions, terms
 from mld_core.motion import skeleton as sk
 from mld_core.motion.bvh import read_bvh
 from mld_core.motion.features import canonical_joints, features_to_joints, joints_to_features
@@ -158,6 +158,7 @@ def _check_folder(out, ids):
     assert mj[:, 20, 1].max() > mj[:, 21, 1].max() + 0.3
     assert "CC BY-NC 4.0" in (out / "README.md").read_text()
     assert "Bandai Namco Research" in (out / "LICENSE").read_text()
+    assert terms.of_folder(out) == [terms.BANDAI]  # whose terms weights trained on it carry
 
 
 def test_prepare_end_to_end_from_folder_and_rerun(bandai_dir, tmp_path, capsys):

@@ -134,7 +134,9 @@ def test_the_panel_choice_yields_to_a_folder_set_outside_the_panel(weights):
     from blender_addon.worker.model_choice import chosen_model_dir, folder_override, model_items
 
     assert [name for name, _, _ in model_items()] == ["auto", "default", "verbs"]
-    assert model_items()[2][1] == "verbs-v1" and model_items()[1][2].endswith("the default")
+    assert model_items()[2][1] == "verbs-v1" and ", the default." in model_items()[1][2]
+    # what the weights may be used for: these tiny folders record no training data, so their terms are unknown
+    assert model_items()[1][2].endswith("Its weights: use as its training data's terms allow")
     assert chosen_model_dir("default") is None and chosen_model_dir(None) is None
     assert chosen_model_dir("verbs") == str(weights / "verbs")
     assert chosen_model_dir("gone") is None  # a choice saved in a .blend that is no longer bundled: the default

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from mld_core.cli import main
+from mld_core.data import terms
 from mld_core.data import bvh_library as bl
 from mld_core.data.bandai import PrepareError, clip_joints
 from mld_core.rig.bone_maps import detect_bone_map
@@ -48,6 +49,8 @@ def test_a_library_becomes_a_training_folder(library, tmp_path, capsys):
     assert [t.split("#")[0] for t in texts] == ["a person waves the right hand", "someone waves with the right hand"]
     mirrored = (out / "texts" / f"M{wave['segments'][0]['id']}.txt").read_text()
     assert "waves the left hand" in mirrored
+    assert terms.of_folder(out) == [{"name": f"BVH folder {library.name}", "licence": "its owner's",
+                                     "commercial": None}]
     walk_text = (out / "texts" / f"{walk['segments'][0]['id']}.txt").read_text()
     assert walk_text.startswith("a person turning walk#")
     ids = (out / "all.txt").read_text().split()

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from mld_core.cli import main
+from mld_core.data import terms
 from mld_core.data import cmu_captions as cc
 from mld_core.data import cmu_joints as C
 from mld_core.data.bandai import clip_joints
@@ -144,6 +145,9 @@ def test_captions_from_cmu_alone_leave_the_kit_sentences_out(clips, tmp_path, ca
         readme = (out / "README.md").read_text()
         assert ("KIT Motion-Language sentences" in readme) == bool(kit_lines)
         assert json.loads((out / C.MANIFEST).read_text())["captions"] == ("all" if kit_lines else "cmu")
+        # whose terms weights trained on it carry: CMU's alone allow commercial products; the KIT sentences' unknown
+        assert terms.of_folder(out) == ([terms.CMU, terms.KIT] if kit_lines else [terms.CMU])
+        assert terms.commercial_use(terms.of_folder(out)) is (None if kit_lines else True)
     # the same windows and splits either way: only the captions differ
     assert (tmp_path / "all" / "all.txt").read_text() == (tmp_path / "cmu_only" / "all.txt").read_text()
 

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from mld_core.cli import main
+from mld_core.data import terms
 from mld_core.data import merge as merge_module
 from mld_core.data.merge import MANIFEST
 from mld_core.inputs import InputError
@@ -88,6 +89,17 @@ def test_the_sources_licences_travel_with_the_merge(tmp_path):
     text = (tmp_path / "m" / "LICENSE").read_text()
     assert "CC BY-NC 4.0" in text and "mocap.cs.cmu.edu" in text
     assert "`LICENSE`" in (tmp_path / "m" / "README.md").read_text()
+    # the sources' terms joined: one that forbids commercial use makes the merge non-commercial; a source
+    # without terms.json is of unknown terms
+    terms.write(a, [terms.BANDAI])
+    terms.write(b, [terms.CMU])
+    assert main(["data", "merge", str(a), str(b), "--out", str(tmp_path / "m2")]) == 0
+    assert terms.of_folder(tmp_path / "m2") == [terms.BANDAI, terms.CMU]
+    assert terms.commercial_use(terms.of_folder(tmp_path / "m2")) is False
+    (a / "terms.json").unlink()
+    assert main(["data", "merge", str(a), str(b), "--out", str(tmp_path / "m3")]) == 0
+    merged = terms.of_folder(tmp_path / "m3")
+    assert merged[1] == terms.CMU and merged[0]["commercial"] is None and terms.commercial_use(merged) is None
 
 
 def test_bandai_and_cmu_ids_that_do_not_clash_stay_as_they_are(tmp_path):

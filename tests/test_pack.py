@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mld_core.data import terms
 from mld_core.data.dataset import load_split
 from mld_core.data.pack import decode_joints, encode_joints, pack, read_pack, unpack
 from mld_core.inputs import InputError
@@ -43,6 +44,7 @@ def _folder(root: Path) -> Path:
     np.save(root / "Mean.npy", np.load(FIXTURE / "Mean.npy"))
     np.save(root / "Std.npy", np.load(FIXTURE / "Std.npy"))
     (root / "actions.json").write_text('{"classes": ["x"], "clips": {"a": "x"}}', encoding="utf-8")
+    terms.write(root, [terms.CMU])
     return root
 
 
@@ -81,6 +83,7 @@ def test_pack_then_unpack_gives_a_folder_to_train_on(tmp_path):
     assert (dst / "texts" / "Ma.txt").read_text().startswith("a person does Ma")
     np.testing.assert_array_equal(np.load(dst / "Mean.npy"), np.load(src / "Mean.npy"))
     assert (dst / "actions.json").read_text() == (src / "actions.json").read_text()
+    assert terms.of_folder(dst) == [terms.CMU]  # the folder's terms travel with it
     assert [c.id for c in load_split(dst, "train")] == ["a", "b", "Ma", "Mb"]
 
 

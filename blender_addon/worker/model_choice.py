@@ -7,7 +7,7 @@ from __future__ import annotations
 from functools import lru_cache
 
 from mld_core import bundled
-from mld_core.bundled import DEFAULT_NAME, UnknownModel, bundled_models, model_folder, model_id_in
+from mld_core.bundled import DEFAULT_NAME, UnknownModel, bundled_models, model_folder, model_id_in, weights_use
 from mld_core.inputs import model_limits
 from mld_core.model_route import AUTO, is_auto, route_line, routed
 
@@ -20,7 +20,8 @@ def model_items() -> list[tuple[str, str, str]]:
     items = [(AUTO, "Auto", AUTO_TIP)] if len(bundled_models()) > 1 else []
     for name, model_id in bundled_models().items():
         tip = f"The bundled model {model_id} (mld_core/weights/{name}; its MODEL_CARD.md says what it makes)"
-        items.append((name, model_id, tip + (", the default" if name == DEFAULT_NAME else "")))
+        use = f". Its weights: {weights_use(bundled.WEIGHTS_DIR / name)}"
+        items.append((name, model_id, tip + (", the default" if name == DEFAULT_NAME else "") + use))
     return items or [(DEFAULT_NAME, "default", "The bundled default model")]
 
 

@@ -43,6 +43,7 @@ from ..fileio import claim_folder
 from ..inputs import InputError, check_output_folder
 from ..motion.bvh import BVHError, parse_bvh
 from . import captions as cap
+from . import terms
 from .take_checks import implausible
 
 FORMAT_VERSION = 1
@@ -590,6 +591,7 @@ def prepare_bandai(src, out, *, workers: int = 2, mirror: bool = True, progress:
         lic = next((licenses[k] for k in sorted(licenses)), None)
         (tmp / "README.md").write_text(_readme(summary), encoding="utf-8")
         (tmp / "LICENSE").write_text(_license(lic), encoding="utf-8")
+        terms.write(tmp, [terms.BANDAI])
         manifest = {**summary, "files": written_files(tmp)}  # what a rerun may replace, and nothing else
         (tmp / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
 

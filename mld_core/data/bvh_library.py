@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from mld_core.data import captions as cap
+from mld_core.data import terms
 from mld_core.data.bandai import (FORMAT_VERSION, MANIFEST, TARGET_FPS, PrepareError, _write_clip, assign_splits,
                                   check_out, resample_joints, source_fps, swap_into_place, write_splits,
                                   written_files)
@@ -400,6 +401,7 @@ def prepare_bvh(src, out, options: LibraryOptions | None = None) -> dict:
         (tmp / REPORT).write_text(json.dumps({"summary": summary, "files": report}, indent=1) + "\n",
                                   encoding="utf-8")
         (tmp / "README.md").write_text(_readme(src, summary), encoding="utf-8")
+        terms.write(tmp, [{"name": f"BVH folder {Path(src).name}", "licence": "its owner's", "commercial": None}])
         (tmp / MANIFEST).write_text(json.dumps({**summary, "files": written_files(tmp) + [MANIFEST]}, indent=1) +
                                     "\n", encoding="utf-8")
         swap_into_place(tmp, out, found)

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from mld_core.data import captions as cap
+from mld_core.data import terms
 from mld_core.data import cmu_captions as cc
 from mld_core.data.bandai import (FORMAT_VERSION, MANIFEST, TARGET_FPS, PrepareError, _hash, _write_clip,
                                   check_out, iter_tar, resample_joints, swap_into_place, write_splits, written_files)
@@ -355,6 +356,7 @@ def prepare_cmu_joints(src, out, *, mirror: bool = True, limit: int | None = Non
                                   encoding="utf-8")
         (tmp / "README.md").write_text(_readme(summary), encoding="utf-8")
         (tmp / "LICENSE").write_text(license_text(captions), encoding="utf-8")
+        terms.write(tmp, [terms.CMU, terms.KIT] if captions == "all" else [terms.CMU])
         (tmp / MANIFEST).write_text(json.dumps({**summary, "files": written_files(tmp) + [MANIFEST]}, indent=1)
                                     + "\n", encoding="utf-8")
         swap_into_place(tmp, out, found)

@@ -24,6 +24,7 @@ from ..fileio import build_new_folder
 from ..inputs import InputError, check_output_folder, read_utf8
 from ..motion import features as F
 from ..motion.skeleton import FEATURE_DIM
+from . import terms
 
 SPLITS = ("train", "val", "test")
 MANIFEST = ".mld_merge.json"
@@ -234,6 +235,7 @@ def _write(tmp: Path, rows, folders: list[Source], mean, std) -> None:
     (tmp / MANIFEST).write_text(json.dumps({"written_by": "mld_core data merge",
                                             "sources": [str(s.path) for s in folders]}, indent=1) + "\n",
                                 encoding="utf-8")
+    terms.write(tmp, terms.union(*(terms.of_folder(folder.path) for folder in folders)))
     licences = _licences(folders)
     if licences:
         (tmp / "LICENSE").write_text(licences, encoding="utf-8")

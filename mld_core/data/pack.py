@@ -3,7 +3,7 @@ rebuilds a HumanML3D-format folder from it.
 
 A pack holds, for every clip of the chosen splits, its joints (``new_joints``: quantised to a millimetre, stored as
 second differences in time, channel by channel, and xz-compressed), its captions, the split lists, Mean/Std and
-actions.json. Mirrored copies (``M<id>``) are not stored: unpacking mirrors the joints again. Unpacking computes the
+actions.json, LICENSE and terms.json. Mirrored copies (``M<id>``) are not stored: unpacking mirrors the joints again. Unpacking computes the
 features from the joints with ``joints_to_features``, so an unpacked clip is one frame shorter than the packed one
 and its features differ from the original folder's by the quantisation (under a millimetre) and by the inverse
 kinematics being run on recovered joints. It is a folder to train on, not a copy: evaluate on the original.
@@ -64,6 +64,9 @@ def decode_joints(small: bytes, big: bytes, lengths: list[int], joints: int = 22
 
 
 # 2. Pack ----------------------------------------------------------------------------------------------------------
+EXTRAS = ("actions.json", "LICENSE", "README.md", "terms.json")  # the folder's small files a pack carries as text
+
+
 def _split_ids(folder: Path, split: str) -> list[str]:
     path = folder / f"{split}.txt"
     return [line.strip() for line in read_utf8(path, str(path)).splitlines() if line.strip()] if path.is_file() else []
@@ -109,8 +112,7 @@ def pack(folder, out, splits=("train", "val")) -> dict:
     small, big = encode_joints(clips)
     meta = {"format": FORMAT, "version": VERSION, "ids": ids, "lengths": lengths, "mirrored": mirrored,
             "splits": lists, "source": folder.name}
-    extras = {name: read_utf8(folder / name, str(folder / name)) for name in ("actions.json", "LICENSE", "README.md")
-              if (folder / name).is_file()}
+    extras = {name: read_utf8(folder / name, str(folder / name)) for name in EXTRAS if (folder / name).is_file()}
     arrays = {"meta": _bytes(json.dumps(meta)), "joints": np.frombuffer(small, np.uint8),
               "escapes": np.frombuffer(big, np.uint8), "texts": _bytes(lzma.compress(json.dumps(texts).encode())),
               "extras": _bytes(lzma.compress(json.dumps(extras).encode())),

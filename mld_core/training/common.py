@@ -1,5 +1,5 @@
-"""Pieces both training stages share: threads, seeds, resumable train state, content-balanced sampling, and the
-choice of which modules train."""
+"""Pieces both training stages share: threads, seeds, resumable train state, content-balanced sampling, the
+choice of which modules train, and whose terms a run's weights carry."""
 
 from __future__ import annotations
 
@@ -15,6 +15,9 @@ import numpy as np
 import torch
 
 from mld_core import inputs
+from mld_core.bundled import model_folder
+from mld_core.checkpoint import CheckpointError, load_config
+from mld_core.data import terms
 from mld_core.fileio import atomic_write
 
 STATE_FILE = "train_state.pt"
@@ -25,6 +28,43 @@ def setup_torch(seed: int, threads: int | None) -> None:
     random.seed(seed)
     np.random.seed(seed)
     torch.manual_seed(seed)
+
+
+def run_training_data(data: str, models: list, out: Path, resume: bool) -> list[dict]:
+    """The ``training_data`` of a run's model (mld_core.data.terms): its data folder's terms, the models it reads
+    (its --init, VAE, teacher: ModelConfig or None) and, resumed, what its earlier sittings read."""
+    lists = [terms.of_folder(Path(data)), *(terms.of_model(m) for m in models if m is not None)]
+    if resume:
+        lists.append(_earlier_sittings_data(Path(out)))
+    return terms.union(*lists)
+
+
+def _earlier_sittings_data(out: Path) -> list[dict]:
+    """What a resumed run's earlier sittings read: their model's record, else (a run begun before the records) the
+    data and models its first sitting's train_config.json names."""
+    try:
+        recorded = load_config(out).training_data
+    except (CheckpointError, OSError, ValueError, TypeError, KeyError):
+        recorded = None
+    if recorded:
+        return recorded
+    try:
+        first = json.loads((out / "train_config.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return [terms.unrecorded(f"run {out.name}")]
+    lists = [terms.of_folder(Path(first["data"]))] if first.get("data") else [terms.unrecorded(f"run {out.name}")]
+    for key in ("init", "vae", "teacher"):  # the models it read, by folder (a VAE run's "vae" is its architecture)
+        if isinstance(first.get(key), str) and first[key]:
+            lists.append(_model_data(first[key]))
+    return terms.union(*lists)
+
+
+def _model_data(name: str) -> list[dict]:
+    """A model folder's (or bundled model's) ``training_data``; unknown when it cannot be read."""
+    try:
+        return terms.of_model(load_config(model_folder(name)))
+    except (CheckpointError, OSError, ValueError, TypeError, KeyError):
+        return [terms.unrecorded(f"model {name}")]
 
 
 def save_train_state(run: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer, step: int,

@@ -37,8 +37,8 @@ from mld_core.schedulers import DDPMScheduler
 from mld_core.training import distributed
 from mld_core.training.common import (Budget, boosted_weights, check_boosted_labels, check_resumed_modules,
                                      checked_budget, checked_folder_setting, checked_label_boost,
-                                     checked_module_names, load_train_state, lr_factor, save_train_state, set_lr,
-                                     setup_torch, trainable_parameters)
+                                     checked_module_names, load_train_state, lr_factor, run_training_data,
+                                     save_train_state, set_lr, setup_torch, trainable_parameters)
 from mld_core.training.vae import GROWTH_NOISE, prepare_run_dir
 from mld_core.training.verb_fold import check_foldable, load_verb_fold
 
@@ -411,6 +411,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     config.guidance_scale = cfg.guidance_scale
     config.content_anchor = ContentAnchorConfig()  # an anchor is built and gated per denoiser (build_content_anchor.py)
     config.verb_guide = None  # a verb denoiser samples the latents of the denoiser it was attached to, not this one's
+    config.training_data = run_training_data(cfg.data, [base, init], out, resume)
     config.provenance = {**{k: v for k, v in base.provenance.items() if k != "verb_guide"},
                          "denoiser_training": recorded_settings(cfg)}
     if fold is not None:  # the guide this run learns to do without

@@ -26,6 +26,7 @@ import torch
 
 from mld_core import inputs
 from mld_core.condition import content_anchor
+from mld_core.data import terms
 from mld_core.checkpoint import DRAFT_TEXT_WEIGHTS, DraftConfig, load_config, load_weights, save_json, save_weights
 from mld_core.inputs import InputError
 from mld_core.models.denoiser import LatentDenoiser
@@ -34,7 +35,8 @@ from mld_core.models.vae import MotionVAE
 from mld_core.schedulers import LCMScheduler
 from mld_core.training import distributed
 from mld_core.training.common import (Budget, balanced_weights, checked_budget, checked_folder_setting,
-                                     load_train_state, lr_factor, save_train_state, set_lr, setup_torch)
+                                     load_train_state, lr_factor, run_training_data, save_train_state, set_lr,
+                                     setup_torch)
 from mld_core.training.verb_fold import check_foldable, load_verb_fold
 from mld_core.training.denoiser import (LATENT_CACHE, TEXT_CACHE, _cached, cached_caption_embeddings, embed_captions,
                                        encode_latents, prepare_run_with_caches, text_units)
@@ -219,6 +221,8 @@ def train_draft(cfg: DraftTrainConfig, resume: bool = False) -> Path:
     config = copy.deepcopy(base)
     config.draft = draft
     config.provenance = {**base.provenance, "draft_training": asdict(cfg)}
+    config.training_data = run_training_data(cfg.data, [base, load_config(Path(cfg.init)) if start else None], out,
+                                             resume)
     if not resume and rt.is_main:
         for name in ("vae.safetensors", "denoiser.safetensors", "coverage_index.npz", content_anchor.FILE_NAME,
                      "MODEL_CARD.md"):
@@ -304,4 +308,5 @@ def install_draft(run: Path, model_dir: Path) -> None:
     cfg.draft.text_layers = text_layers
     cfg.provenance["draft_training"] = run_cfg.provenance.get("draft_training", {})
     cfg.provenance["draft_steps"] = run_cfg.provenance.get("draft_steps", 0)
+    terms.add_to(cfg, terms.of_model(run_cfg))
     save_json(Path(model_dir) / "config.json", cfg.to_dict())

@@ -27,12 +27,13 @@ from torch import nn
 
 from mld_core import inputs
 from mld_core.checkpoint import DRAFT_TEXT_WEIGHTS, load_config, save_json
+from mld_core.data import terms
 from mld_core.data.captions import SUBJECTS, reworded
 from mld_core.fileio import atomic_write
 from mld_core.inputs import InputError
 from mld_core.training import distributed
-from mld_core.training.common import (Budget, checked_budget, load_train_state, lr_factor, save_train_state,
-                                     set_lr, setup_torch)
+from mld_core.training.common import (Budget, checked_budget, load_train_state, lr_factor, run_training_data,
+                                     save_train_state, set_lr, setup_torch)
 
 
 @dataclass
@@ -258,7 +259,8 @@ def train_draft_text(cfg: DraftTextTrainConfig, resume: bool = False) -> Path:
     val = [val[i] for i in np.random.default_rng(cfg.seed).permutation(len(val))[: cfg.val_texts]] or captions[:1]
     if rt.is_main:
         save_json(out / "train_config.json", {**asdict(cfg), "stage": "draft-text",
-                                              "run": rt.describe(cfg.batch_size, "texts")})
+                                              "run": rt.describe(cfg.batch_size, "texts"),
+                                              "training_data": run_training_data(cfg.data, [base], out, resume)})
     totals = _sum_over_processes if rt.size > 1 else None
     model = rt.wrap(_DistilLoss(student, teacher, cfg, denoisers, totals))
 
@@ -360,5 +362,6 @@ def install_draft_text(run: Path, model_dir: Path) -> None:
         raise ValueError(f"cannot install {source} into {model_dir}: {str(exc).splitlines()[0]}") from None
     save_layers(student, Path(model_dir) / DRAFT_TEXT_WEIGHTS, torch.float16)
     cfg.draft.text_layers = len(student.layers)
-    cfg.provenance["draft_text_training"] = {k: v for k, v in run_cfg.items() if k != "stage"}
+    cfg.provenance["draft_text_training"] = {k: v for k, v in run_cfg.items() if k not in ("stage", "training_data")}
+    terms.add_to(cfg, run_cfg.get("training_data") or [terms.unrecorded(f"Draft text encoder {Path(run).name}")])
     save_json(Path(model_dir) / "config.json", cfg.to_dict())

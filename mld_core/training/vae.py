@@ -28,7 +28,7 @@ from mld_core.motion.features import FOOT_CONTACT, ROOT_ROT_VEL, ROOT_Y, feature
 from mld_core.training import distributed
 from mld_core.training.common import (Budget, boosted_weights, check_resumed_modules, checked_budget,
                                      checked_label_boost, checked_module_names, load_train_state, lr_factor,
-                                     save_train_state, set_lr, setup_torch, trainable_parameters)
+                                     run_training_data, save_train_state, set_lr, setup_torch, trainable_parameters)
 
 ROOT_CHANNELS = slice(ROOT_ROT_VEL.start, ROOT_Y.stop)  # yaw velocity, xz velocity (facing frame), root height
 HORIZONTAL = [0, 2]  # x and z of a joint position (y is up)
@@ -254,18 +254,21 @@ def sittings_before(init: ModelConfig | None) -> list[dict]:
 
 
 def model_config_for(cfg: VAETrainConfig, mean, std, actions: list, model_id: str,
-                     keep_from: ModelConfig | None = None, lineage: list | None = None) -> ModelConfig:
+                     keep_from: ModelConfig | None = None, lineage: list | None = None,
+                     training_data: list | None = None) -> ModelConfig:
     """The run's model config. A fine-tuned VAE keeps the decoding settings of ``keep_from`` (the model folder it
     started from), the repairs and the stepping, which act on its output: a fine-tune of the bundled model steps.
     ``lineage`` (``sittings_before``) records the training the run started from, so a VAE carried from one machine
-    or sitting to the next still says what it has had."""
+    or sitting to the next still says what it has had; ``training_data`` (``run_training_data``) whose terms it
+    carries."""
     settings = {k: v for k, v in asdict(cfg).items() if k != "vae"}
     provenance = {"vae_training": {**settings, "init": recorded_path(cfg.init)}}
     if lineage:
         provenance["vae_lineage"] = lineage
     config = ModelConfig(model_id=model_id, vae=cfg.vae, min_frames=cfg.min_frames, max_frames=cfg.vae.max_frames,
                          mean=np.asarray(mean).tolist(), std=np.asarray(std).tolist(), actions=actions,
-                         skeleton=skeleton_info() if cfg.vae.feature_dim == 263 else {}, provenance=provenance)
+                         skeleton=skeleton_info() if cfg.vae.feature_dim == 263 else {}, provenance=provenance,
+                         training_data=training_data)
     if keep_from is not None:
         config.repair, config.stepping = keep_from.repair, keep_from.stepping
     return config
@@ -310,6 +313,7 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
         check_resumed_modules(out, cfg.train_modules)
     # the repairs and stepping the run's model keeps: its first sitting's when resumed, else the fine-tuned folder's
     keep_from = load_config(out) if resume and (out / "config.json").is_file() else init
+    data_terms = run_training_data(cfg.data, [init], out, resume)
     train = load_split(cfg.data, "train", captioned=False)  # uncaptioned motion teaches the autoencoder too
     val = load_split(cfg.data, "val", captioned=False)
     if not train:
@@ -378,7 +382,8 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
             metric = selection_metric(record, cfg.select_by, step)
             if metric <= best or not val:
                 best = metric
-                config = model_config_for(cfg, mean, std, actions, f"{out.name}-vae", keep_from, lineage)
+                config = model_config_for(cfg, mean, std, actions, f"{out.name}-vae", keep_from, lineage,
+                                          data_terms)
                 config.provenance["vae_val_mpjpe_mm"] = record.get("val_mpjpe_mm")
                 config.provenance["vae_val_global_mpjpe_mm"] = record.get("val_global_mpjpe_mm")
                 config.provenance["vae_steps"] = step
@@ -391,7 +396,8 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
         log.close()
         if not (out / "config.json").exists():
             save_weights(out / "vae.safetensors", vae)
-            config = model_config_for(cfg, mean, std, actions, f"{out.name}-vae", keep_from, lineage)
+            config = model_config_for(cfg, mean, std, actions, f"{out.name}-vae", keep_from, lineage,
+                                      data_terms)
             save_json(out / "config.json", config.to_dict())
     rt.barrier()
     return out
