@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from mld_core.cli import main as cli
+from mld_core.data import terms
 from mld_core.data.dataset import read_captions, split_ids
 from mld_core.eval import physical
 from mld_core.motion.features import features_to_joints
@@ -77,6 +78,7 @@ def test_the_candidates_are_train_captions_naming_the_clips_verb_and_never_a_mea
 
 def test_kept_takes_become_a_folder_that_merges_and_a_second_run_goes_on(samples, tmp_path, monkeypatch, capsys):
     data = _folder(tmp_path / "data")
+    terms.write(data, [terms.CMU])
     model = tiny_model(tmp_path / "model")
     shown = {"n": 0}
 
@@ -101,6 +103,8 @@ def test_kept_takes_become_a_folder_that_merges_and_a_second_run_goes_on(samples
         np.testing.assert_allclose(features_to_joints(features), joints, atol=1e-4)  # the features say the same
         assert json.loads((out / "actions.json").read_text())["clips"][sid] == p["verb"]
     assert {p["verb"] for p in kept} == {"jump", "crawl"}  # one kept take per verb, then the verb stops
+    # the takes carry the terms of the data their captions came from and of the model that made them
+    assert terms.of_folder(out) == [terms.CMU, terms.unrecorded("model tiny-text")]
     again = len(progress)
     assert samples.main(argv + ["--per-verb", "2"]) == 0  # goes on: tries only what was not tried
     progress = [json.loads(line) for line in (out / "progress.jsonl").read_text().splitlines()]

@@ -33,6 +33,7 @@ ROOT = HERE.parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 
+from mld_core.data import terms  # noqa: E402
 from mld_core.data.dataset import read_actions, read_captions, split_ids  # noqa: E402
 from mld_core.data.verbs import VERBS, verbs_in  # noqa: E402
 
@@ -97,14 +98,16 @@ def plan(cands: dict, done: list[dict], per_verb: int) -> list[dict]:
     return order
 
 
-def start_folder(data: Path, out: Path) -> None:
-    """The prepared folder's fixed parts: the statistics and licence of ``data``, empty splits, a README."""
+def start_folder(data: Path, out: Path, model_terms: list[dict]) -> None:
+    """The prepared folder's fixed parts: the statistics and licence of ``data``, empty splits, a README, and
+    ``terms.json``: the terms of ``data`` and of the model that makes the takes (``model_terms``)."""
     for sub in ("new_joint_vecs", "new_joints", "texts"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     (out / PROGRESS).touch()  # marks the folder as this script's from the start
     for name in ("Mean.npy", "Std.npy", "LICENSE"):
         if (data / name).is_file() and not (out / name).is_file():
             shutil.copy2(data / name, out / name)
+    terms.write(out, terms.union(terms.of_folder(data), model_terms))
     (out / "README.md").write_text(
         "Takes made by a text-to-motion model from train captions that name a checked verb, kept where they show "
         "every verb the caption names (research/v4/verb_samples.py). Synthetic motion: its licence is that of the "
@@ -153,7 +156,7 @@ def run(args) -> int:
     except BlockingIOError:
         print(f"error: another run is writing {args.out}; wait for it or name another --out", file=sys.stderr)
         return 2
-    start_folder(args.data, args.out)
+    start_folder(args.data, args.out, terms.of_model(pipe.config))
     done = read_progress(args.out)
     todo = plan(cands, done, args.per_verb)
     index = {(c, t): k for items in cands.values() for k, (c, t, _) in enumerate(items)}
