@@ -43,6 +43,7 @@ from mld_core.fileio import make_parents  # noqa: E402
 from mld_core.inputs import InputError, check_output_folder, parse_json  # noqa: E402
 from mld_core.models.denoiser import LatentDenoiser  # noqa: E402
 from mld_core.models.vae import MotionVAE, take_decoder  # noqa: E402
+from mld_core.training.common import recorded_training_data  # noqa: E402
 from mld_core.training.draft import DRAFT_WEIGHTS, install_draft  # noqa: E402
 
 CARD = """# {model_id}
@@ -307,6 +308,8 @@ def main(argv=None) -> int:
         return 2
     if args.model_id:
         config.model_id = args.model_id
+    if config.training_data is None:  # a run begun before the records: what its train_config.json names
+        config.training_data = recorded_training_data(args.run)
     if not vae_only and args.data is not None and not (args.run / "coverage_index.npz").is_file():
         terms.add_to(config, terms.of_folder(args.data))  # the coverage index is built from its captions
     if vae_only:

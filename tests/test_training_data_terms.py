@@ -100,6 +100,11 @@ def test_a_run_begun_before_the_records_resumes_with_its_first_sittings_data(run
     config = json.loads((run / "config.json").read_text())
     del config["training_data"]
     (run / "config.json").write_text(json.dumps(config))
+    import export_model  # its export reads the data its train_config.json names
+
+    assert export_model.main([str(run), "--out", str(tmp_path / "exported")]) == 0
+    assert load_config(tmp_path / "exported").training_data == [terms.CMU]
+    assert "**may be used in commercial products**" in (tmp_path / "exported" / "MODEL_CARD.md").read_text()
     assert main(["train", "vae", "--data", str(runs / "cmu_only"), "--out", str(run), "--steps", "20",
                  "--threads", "1", "--config", str(runs / "vae.json"), "--resume"]) == 0
     assert load_config(run).training_data == [terms.CMU]

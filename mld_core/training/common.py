@@ -35,13 +35,13 @@ def run_training_data(data: str, models: list, out: Path, resume: bool) -> list[
     (its --init, VAE, teacher: ModelConfig or None) and, resumed, what its earlier sittings read."""
     lists = [terms.of_folder(Path(data)), *(terms.of_model(m) for m in models if m is not None)]
     if resume:
-        lists.append(_earlier_sittings_data(Path(out)))
+        lists.append(recorded_training_data(Path(out)))
     return terms.union(*lists)
 
 
-def _earlier_sittings_data(out: Path) -> list[dict]:
-    """What a resumed run's earlier sittings read: their model's record, else (a run begun before the records) the
-    data and models its first sitting's train_config.json names."""
+def recorded_training_data(out: Path) -> list[dict]:
+    """What a run folder's sittings read: its model's record, else (a run begun before the records) the data and
+    models its first sitting's train_config.json names; unknown when neither can be read."""
     try:
         recorded = load_config(out).training_data
     except (CheckpointError, OSError, ValueError, TypeError, KeyError):
