@@ -52,9 +52,10 @@ addon_utils.enable("blender_addon", default_set=True)
 """
 
 
-def addon_script(body: str) -> str:
-    """``ADDON_PRELUDE`` + ``body``, formatted for this checkout (``body`` doubles its literal braces)."""
-    return (ADDON_PRELUDE + body).format(repo=str(REPO), tests=str(REPO / "tests"))
+def addon_script(body: str, **fields) -> str:
+    """``ADDON_PRELUDE`` + ``body``, formatted for this checkout and with ``fields`` (``body`` doubles its literal
+    braces)."""
+    return (ADDON_PRELUDE + body).format(repo=str(REPO), tests=str(REPO / "tests"), **fields)
 
 
 def bpy_env(user_dir: Path, **extra) -> dict:

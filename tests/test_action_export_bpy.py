@@ -8,16 +8,11 @@ import json
 import numpy as np
 import pytest
 
-from bpy_util import REPO, requires_bpy, run_bpy_script
+from bpy_util import addon_script, requires_bpy, run_bpy_script
 
 pytestmark = [pytest.mark.bpy, requires_bpy]
 
 EXPORT = r"""
-import sys
-sys.path.insert(0, {repo!r})
-import bpy, addon_utils
-bpy.ops.wm.read_factory_settings(use_empty=True)
-addon_utils.enable("blender_addon", default_set=True)
 from blender_addon.ui import retarget_panel
 ctx = bpy.context
 ctx.scene.render.fps = 20
@@ -53,7 +48,7 @@ def test_actions_export_and_prepare(tmp_path):
     from mld_core.cli import main
 
     folder, folder2 = tmp_path / "lib", tmp_path / "lib2"
-    r = run_bpy_script(EXPORT.format(repo=str(REPO), folder=str(folder), folder2=str(folder2)), tmp_path,
+    r = run_bpy_script(addon_script(EXPORT, folder=str(folder), folder2=str(folder2)), tmp_path,
                        timeout=180)
     assert r["first"][0] == "INFO" and "Exported 2 Actions" in r["first"][1]
     assert r["kept_action"] == "nothing_keyed"  # the armature's own Action is back

@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from bpy_util import REPO, requires_bpy, run_bpy_script, run_python
+from bpy_util import REPO, addon_script, requires_bpy, run_bpy_script, run_python
 from mld_core.testing import tiny_model
 
 pytestmark = [pytest.mark.bpy, requires_bpy]
@@ -54,12 +54,7 @@ emit([[[s.name, s.action.name, s.frame_start, s.frame_end, s.action_frame_start,
 
 
 PANEL = r"""
-import sys
-sys.path.insert(0, {repo!r})
-import bpy, addon_utils
 import numpy as np
-bpy.ops.wm.read_factory_settings(use_empty=True)
-addon_utils.enable("blender_addon", default_set=True)
 from blender_addon.ui import operators
 ctx = bpy.context
 s = ctx.scene.mld_motion
@@ -88,7 +83,7 @@ def test_panel_loop_and_follow_curve(tmp_path):
     from bpy_util import run_bpy_script
 
     model = tiny_model(tmp_path / "tiny")
-    r = run_bpy_script(PANEL.format(repo=str(REPO)), tmp_path, timeout=180, MLD_MODEL_DIR=model)
+    r = run_bpy_script(addon_script(PANEL), tmp_path, timeout=180, MLD_MODEL_DIR=model)
     assert r["free"] == []
     assert r["kinds"] == ["Loop", "RootPath"] and r["request_kinds"] == ["Loop", "RootPath"]
     start, end = r["path_start_end"]
@@ -98,11 +93,6 @@ def test_panel_loop_and_follow_curve(tmp_path):
 
 
 REVIEW = r"""
-import sys
-sys.path.insert(0, {repo!r})
-import bpy, addon_utils
-bpy.ops.wm.read_factory_settings(use_empty=True)
-addon_utils.enable("blender_addon", default_set=True)
 ctx = bpy.context
 s = ctx.scene.mld_motion
 bpy.ops.mld.create_armature()
@@ -134,7 +124,7 @@ def test_preview_then_reject_or_accept(tmp_path):
     from bpy_util import run_bpy_script
 
     model = tiny_model(tmp_path / "tiny")
-    r = run_bpy_script(REVIEW.format(repo=str(REPO)), tmp_path, timeout=180, MLD_MODEL_DIR=model)
+    r = run_bpy_script(addon_script(REVIEW), tmp_path, timeout=180, MLD_MODEL_DIR=model)
     assert r["poll_before"] is False and r["poll_after"] is True
     assert r["playing"] == r["made"][0]
     assert r["after_reject"] == "hand_made" and r["made_left"] == []  # what was there is back; the take is gone
@@ -142,12 +132,8 @@ def test_preview_then_reject_or_accept(tmp_path):
 
 
 ARMATURE_KEYS = r"""
-import sys, math
-sys.path.insert(0, {repo!r})
-import bpy, addon_utils
+import math
 import numpy as np
-bpy.ops.wm.read_factory_settings(use_empty=True)
-addon_utils.enable("blender_addon", default_set=True)
 from blender_addon.ui import operators
 ctx = bpy.context
 scene = ctx.scene
@@ -188,7 +174,7 @@ emit(out)
 def test_use_keys_on_the_armature(tmp_path):
     from bpy_util import run_bpy_script
 
-    r = run_bpy_script(ARMATURE_KEYS.format(repo=str(REPO)), tmp_path, timeout=120)
+    r = run_bpy_script(addon_script(ARMATURE_KEYS), tmp_path, timeout=120)
     assert r["frames"] == [0, 30]  # scene frames 1 and 31 (frame 200 is past the 2 s take)
     assert r["joints"] == ["left_shoulder"]  # only the keyed bone's joint
     assert r["shoulder"] == pytest.approx(r["expected"], abs=1e-5)  # relative to the armature, model axes
@@ -199,21 +185,13 @@ def test_use_keys_on_the_armature(tmp_path):
 def test_typing_a_prompt_raises_nothing(tmp_path):
     """The prompt's update callback (the coverage line) runs without an error on stderr."""
     script = tmp_path / "type.py"
-    script.write_text(
-        f"import sys\nsys.path.insert(0, {str(REPO)!r})\nimport bpy, addon_utils\n"
-        "bpy.ops.wm.read_factory_settings(use_empty=True)\naddon_utils.enable('blender_addon', default_set=True)\n"
-        "bpy.context.scene.mld_motion.prompt = 'a person jumps'\nprint('typed')\n")
+    script.write_text(addon_script("bpy.context.scene.mld_motion.prompt = 'a person jumps'\nprint('typed')\n"))
     proc = run_python([script], user_dir=tmp_path / "user", timeout=120)
     assert proc.returncode == 0 and "typed" in proc.stdout
     assert "Traceback" not in proc.stderr and "Error" not in proc.stderr, proc.stderr[-2000:]
 
 
 SEQUENCE = r"""
-import sys
-sys.path.insert(0, {repo!r})
-import bpy, addon_utils
-bpy.ops.wm.read_factory_settings(use_empty=True)
-addon_utils.enable("blender_addon", default_set=True)
 ctx = bpy.context
 ctx.scene.render.fps = 20
 s = ctx.scene.mld_motion
@@ -240,7 +218,7 @@ emit(out)
 def test_panel_sequence_makes_one_take(tmp_path):
     from bpy_util import run_bpy_script
 
-    r = run_bpy_script(SEQUENCE.format(repo=str(REPO)), tmp_path, timeout=180, MLD_MODEL_DIR=tiny_model(tmp_path / "t"))
+    r = run_bpy_script(addon_script(SEQUENCE), tmp_path, timeout=180, MLD_MODEL_DIR=tiny_model(tmp_path / "t"))
     assert r["rows"] == [["a person bows", 3.0], ["a person walks", 2.0]]
     assert r["generate"] == ["FINISHED"] and r["frames"] == 100 and "," not in r["actions"]  # 3 s + 2 s, one Action
     assert 'the seam into segment 2 ("a person walks") jerks' in r["message"]  # the tiny model's seam is rough

@@ -6,17 +6,13 @@ from __future__ import annotations
 
 import pytest
 
-from bpy_util import REPO, requires_bpy, run_bpy_script
+from bpy_util import REPO, addon_script, requires_bpy, run_bpy_script
 from mld_core.testing import tiny_model
 
 pytestmark = [pytest.mark.bpy, requires_bpy]
 
 SCRIPT = r"""
-import sys, time
-sys.path.insert(0, {repo!r})
-import bpy, addon_utils
-bpy.ops.wm.read_factory_settings(use_empty=True)
-addon_utils.enable("blender_addon", default_set=True)
+import time
 from blender_addon.ui import live_preview, runtime
 from blender_addon.scene import take_review
 ctx = bpy.context
@@ -86,7 +82,7 @@ emit(out)
 
 def test_draft_mode_and_live_preview(tmp_path):
     model = tiny_model(tmp_path / "tiny", draft=True)
-    r = run_bpy_script(SCRIPT.format(repo=str(REPO)), tmp_path, timeout=240, MLD_MODEL_DIR=model)
+    r = run_bpy_script(addon_script(SCRIPT), tmp_path, timeout=240, MLD_MODEL_DIR=model)
     assert r["final"] == ["FINISHED"] and r["final_draft_flag"] is False
     assert r["draft_take"] == [True, 2]  # Draft mode: the model's own 2 steps, whatever Steps says
     assert r["keep_enabled"] is True and r["waiting"] is True and r["early"] is True

@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from bpy_util import REPO, requires_bpy, run_bpy_script, run_python
+from bpy_util import REPO, addon_script, requires_bpy, run_bpy_script, run_python
 
 pytestmark = [pytest.mark.bpy, requires_bpy]
 
@@ -292,13 +292,7 @@ def test_batch_keys_an_imported_bvh_rig(tmp_path, capsys):
 
 
 POSED_LINK = r"""
-import sys
-sys.path.insert(0, {repo!r})
-sys.path.insert(0, {repo!r} + "/tests")
-import bpy, addon_utils
 import numpy as np
-bpy.ops.wm.read_factory_settings(use_empty=True)
-addon_utils.enable("blender_addon", default_set=True)
 from blender_addon.scene import read_rig as rig_io, write_action
 from mld_core.rig import bone_maps
 from test_retarget import iclone_like_rig
@@ -333,7 +327,7 @@ def test_a_posed_link_between_keyed_bones_is_keyed_at_rest(tmp_path):
     from mld_core.testing import tiny_model
 
     model = tiny_model(tmp_path / "tiny")
-    r = run_bpy_script(POSED_LINK.format(repo=str(REPO)), tmp_path, timeout=180, MLD_MODEL_DIR=model)
+    r = run_bpy_script(addon_script(POSED_LINK), tmp_path, timeout=180, MLD_MODEL_DIR=model)
     assert r["generate"] == ["FINISHED"] and r["error"] == ""
     assert r["root_location"]  # the bone the pelvis and the spine hang from carries the root motion
     assert r["link_keys"] == ["location", "rotation_quaternion", "scale"] and r["link_at_rest"]

@@ -6,18 +6,13 @@ from __future__ import annotations
 
 import pytest
 
-from bpy_util import REPO, requires_bpy, run_bpy_script
+from bpy_util import addon_script, requires_bpy, run_bpy_script
 from mld_core.testing import tiny_model
 
 pytestmark = [pytest.mark.bpy, requires_bpy]
 
 SCRIPT = r"""
-import sys
-sys.path.insert(0, {repo!r})
-import bpy, addon_utils
 import numpy as np
-bpy.ops.wm.read_factory_settings(use_empty=True)
-addon_utils.enable("blender_addon", default_set=True)
 addon_utils.enable("rigify", default_set=True)
 from blender_addon.scene import write_action
 bpy.ops.object.armature_human_metarig_add()
@@ -54,7 +49,7 @@ emit(out)
 
 def test_rigify_ik_controls_follow_the_fk_take(tmp_path):
     model = tiny_model(tmp_path / "tiny")
-    r = run_bpy_script(SCRIPT.format(repo=str(REPO)), tmp_path, timeout=240, MLD_MODEL_DIR=model)
+    r = run_bpy_script(addon_script(SCRIPT), tmp_path, timeout=240, MLD_MODEL_DIR=model)
     assert r["generate"] == ["FINISHED"] and r["error"] == ""
     assert r["ik_keyed"] == ["foot_ik.R", "hand_ik.L", "thigh_ik.R", "thigh_ik_target.L", "upper_arm_ik.L"]
     assert r["switches"] == ['pose.bones["thigh_parent.L"]["IK_FK"]', 'pose.bones["thigh_parent.R"]["IK_FK"]',
