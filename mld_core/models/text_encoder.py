@@ -427,6 +427,8 @@ class MiniLMEncoder(TextEncoder):
         except (OSError, ValueError) as e:
             raise TextEncoderError(f"bad vocabulary file {vocab_path}: {e}") from e
         weights = _load_safetensors(folder / WEIGHTS_FILE, _expected_shapes(config))
+        if dtype is None:  # a half-precision file (the add-on's copy is fp16) runs in float32, as the original does
+            weights = {k: v.float() if v.dtype in (torch.float16, torch.bfloat16) else v for k, v in weights.items()}
         if layer_file is not None:
             config, weights = _with_layers(config, weights, Path(layer_file))
         enc = cls(config, tokenizer, weights, dtype=dtype)
