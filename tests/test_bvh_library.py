@@ -49,8 +49,6 @@ def test_a_library_becomes_a_training_folder(library, tmp_path, capsys):
     assert [t.split("#")[0] for t in texts] == ["a person waves the right hand", "someone waves with the right hand"]
     mirrored = (out / "texts" / f"M{wave['segments'][0]['id']}.txt").read_text()
     assert "waves the left hand" in mirrored
-    assert terms.of_folder(out) == [{"name": f"BVH folder {library.name}", "licence": "its owner's",
-                                     "commercial": None}]
     walk_text = (out / "texts" / f"{walk['segments'][0]['id']}.txt").read_text()
     assert walk_text.startswith("a person turning walk#")
     ids = (out / "all.txt").read_text().split()
@@ -59,6 +57,21 @@ def test_a_library_becomes_a_training_folder(library, tmp_path, capsys):
     reference = clip_joints((library / "walks" / "turning_walk.bvh").read_bytes())
     assert features.shape == (len(reference) - 1, 263)  # the same frames as the Bandai reader gives
     assert json.loads((out / "actions.json").read_text())["clips"][walk["segments"][0]["id"]] == "walks"
+    assert terms.of_folder(out) == [{"name": f"BVH folder {library.name}", "licence": "its owner's",
+                                     "commercial": None}]
+
+
+def test_a_library_records_the_terms_its_owner_gives(library, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert _run(library, out, "--caption-template", "a person {name}", "--licence", "Studio X, all rights reserved",
+                "--commercial-use", "yes") == 0
+    assert terms.of_folder(out) == [{"name": f"BVH folder {library.name}", "licence": "Studio X, all rights reserved",
+                                     "commercial": True}]
+    assert terms.commercial_use(terms.of_folder(out)) is True
+    capsys.readouterr()
+    assert _run(library, tmp_path / "bad", "--caption-template", "a person {name}", "--licence", " ") == 2
+    err = capsys.readouterr().err
+    assert "--licence" in err and len(err.strip().splitlines()) == 1 and not (tmp_path / "bad").exists()
 
 
 def test_caption_table_spans_cut_segments(library, tmp_path):

@@ -49,6 +49,8 @@ class LibraryOptions:
     units: str | None = None  # m, cm, mm, in, ft or metres per unit; None: detect
     up: str | None = None  # "y" or "z"; None: detect
     mirror: bool = True
+    licence: str = "its owner's"  # the library's terms, as terms.json records them (mld_core.data.terms)
+    commercial: bool | None = None  # may weights trained on it go into commercial products; None: not said
     max_seconds: float = MAX_SECONDS
     min_seconds: float = MIN_SECONDS
 
@@ -401,7 +403,8 @@ def prepare_bvh(src, out, options: LibraryOptions | None = None) -> dict:
         (tmp / REPORT).write_text(json.dumps({"summary": summary, "files": report}, indent=1) + "\n",
                                   encoding="utf-8")
         (tmp / "README.md").write_text(_readme(src, summary), encoding="utf-8")
-        terms.write(tmp, [{"name": f"BVH folder {Path(src).name}", "licence": "its owner's", "commercial": None}])
+        terms.write(tmp, [{"name": f"BVH folder {Path(src).name}", "licence": options.licence,
+                           "commercial": options.commercial}])
         (tmp / MANIFEST).write_text(json.dumps({**summary, "files": written_files(tmp) + [MANIFEST]}, indent=1) +
                                     "\n", encoding="utf-8")
         swap_into_place(tmp, out, found)

@@ -44,6 +44,10 @@ def register(groups) -> None:
     b.add_argument("--units", default=None, help="m, cm, mm, in, ft or metres per unit (default: detect)")
     b.add_argument("--up", choices=("y", "z"), default=None, help="the files' up axis (default: detect)")
     b.add_argument("--no-mirror", action="store_true", help="do not add the mirrored M<id> copies")
+    b.add_argument("--licence", default="its owner's", metavar="TEXT",
+                   help="the library's terms, recorded in terms.json and so in every model trained on it")
+    b.add_argument("--commercial-use", choices=("yes", "no"), default=None,
+                   help="whether those terms allow weights trained on it in commercial products (default: not said)")
     b.set_defaults(func=_run_bvh)
     c = datasets.add_parser(
         "cmu-joints",
@@ -155,8 +159,11 @@ def _run_bvh(args) -> int:
     from .bvh_library import LibraryOptions, prepare_bvh
 
     start = time.perf_counter()
+    if not args.licence.strip():
+        raise UsageError("--licence: say the library's terms in words (e.g. \"Studio X, all rights reserved\")")
     options = LibraryOptions(captions=args.captions, caption_template=args.caption_template, bone_map=args.bone_map,
-                             units=args.units, up=args.up, mirror=not args.no_mirror)
+                             units=args.units, up=args.up, mirror=not args.no_mirror, licence=args.licence,
+                             commercial=None if args.commercial_use is None else args.commercial_use == "yes")
     try:
         s = prepare_bvh(args.src, args.out, options)
     except PrepareError as exc:
