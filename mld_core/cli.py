@@ -2,7 +2,7 @@
 
 Each feature module contributes its own sub-commands through a ``register(groups)`` function, so the
 CLI stays a thin dispatcher. ``groups`` maps a group name to an argparse sub-parsers object:
-``"root"`` (top level: generate, evaluate, bench, merge), ``"data"`` (data prepare ...), ``"train"``
+``"root"`` (top level: generate, evaluate, bench, merge, models), ``"data"`` (data prepare ...), ``"train"``
 (train vae|denoiser|evaluator). A registered parser sets ``func=callable(args) -> int``.
 Errors meant for the user are raised as ``UsageError`` and printed without a traceback (exit 2).
 """
@@ -33,6 +33,7 @@ COMMAND_MODULES = (
     "mld_core.eval.cli",
     "mld_core.bench",
     "mld_core.shards",
+    "mld_core.model_list",
 )
 
 

@@ -185,3 +185,17 @@ def test_a_draft_and_its_text_encoder_installed_into_a_model_add_their_data(runs
                  str(tmp_path / "text"), "--threads", "1", "--steps", "2", "--install", "--config",
                  json.dumps({"batch_size": 8, "save_every": 10, "init_layers": [0], "val_texts": 4})]) == 0
     assert load_config(model).training_data == [terms.CMU, terms.KIT, terms.BANDAI]
+
+
+def test_the_models_command_says_what_each_models_weights_may_be_used_for(runs, tmp_path, capsys):
+    assert main(["models"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert "default: mld-bandai-cpu-v3.8, non-commercial (CC BY-NC 4.0)" in out
+    assert any(line.startswith("v4_preview: mld-v4-preview, non-commercial") for line in out)
+    assert main(["models", str(runs / "den")]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == f"{runs / 'den'}: den, may be used in commercial products" and "CMU Graphics Lab" in out[1]
+    for bad in ("no_such_model", str(tmp_path)):
+        assert main(["models", bad]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and len(err.strip().splitlines()) == 1
