@@ -408,6 +408,8 @@ def test_generation_work_with_tiny_pipeline(tiny_dir):
     assert prov["mld_prompt"] == "a person walks forward" and prov["mld_seed"] == 6 and prov["mld_steps"] == 3
     assert prov["mld_model_id"] == "tiny-text" and prov["mld_addon_version"] == env.ADDON_VERSION_STRING
     assert prov["mld_guidance"] > 0  # the model's default, recorded
+    # what the weights that made it may be used for: the tiny model records no training data, so unknown terms
+    assert prov["mld_weights_use"] == "use as its training data's terms allow"
     # the model is cached: a second job does not load again; same seed = same motion
     job2 = runner.submit(request.with_(variants=1))
     assert job2.wait(60)

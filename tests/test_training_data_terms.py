@@ -199,3 +199,17 @@ def test_the_models_command_says_what_each_models_weights_may_be_used_for(runs, 
         assert main(["models", bad]) == 2
         err = capsys.readouterr().err
         assert err.startswith("error: ") and len(err.strip().splitlines()) == 1
+
+
+def test_a_take_records_what_the_weights_that_made_it_may_be_used_for(runs):
+    from blender_addon.worker.generation import generate
+    from blender_addon.worker.validation import validate_request
+    from mld_core.pipeline import MLDPipeline
+
+    pipe = MLDPipeline.from_pretrained(runs / "den")
+    request = validate_request("a person walks", 1.5, 3, 2, 0, 1, model_dir=str(runs / "den"))
+    take = generate(pipe, request).takes[0]
+    assert take.weights_use == "may be used in commercial products"
+    assert take.provenance()["mld_weights_use"] == "may be used in commercial products"
+    pipe.config.training_data = [terms.CMU, terms.BANDAI]
+    assert generate(pipe, request).takes[0].provenance()["mld_weights_use"] == "non-commercial (CC BY-NC 4.0)"

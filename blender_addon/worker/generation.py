@@ -46,6 +46,7 @@ class Take:
     seams: list | None = None  # [(segment, largest joint jerk m/s^3, within real motion's)] of a sequence's seams
     draw: int = 0  # which z_T of its seed (0: the first; a later one when a side or verb redraw drew it again)
     redrawn_for: str = ""  # the redraw that drew it again: "side", "verb", either + " missed", or "" (none)
+    weights_use: str = ""  # what the model's weights, and so this take, may be used for (mld_core.data.terms)
 
     @property
     def frames(self) -> int:
@@ -80,6 +81,7 @@ class Take:
             "fps": int(self.fps),
             "model_id": self.model_id or "",
             "model_dir": self.request.model_dir or "",
+            "weights_use": self.weights_use,
             "addon_version": ADDON_VERSION_STRING,
             "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         }
@@ -160,6 +162,7 @@ def generate(pipe, request: GenerateRequest, callback=None, check_cancel=None) -
             getattr(getattr(pipe, "config", None), "guidance_scale", None)
     fps = int(getattr(out, "fps", 20) or 20)
     model_id = getattr(out, "model_id", "") or getattr(pipe, "model_id", "") or ""
+    weights_use = weights_use_of(pipe)
     t0 = time.perf_counter()
     takes = []
     for row in range(len(out.seeds)):
@@ -190,10 +193,19 @@ def generate(pipe, request: GenerateRequest, callback=None, check_cancel=None) -
             seams=out.seams[row] if getattr(out, "seams", None) else None,
             draw=int(out.draws[row]) if getattr(out, "draws", None) else 0,
             redrawn_for=out.redrawn_for[row] if getattr(out, "redrawn_for", None) else "",
+            weights_use=weights_use,
         )
         take.name = action_name(request.prompt, request.seed, take.variant, request.variants)
         takes.append(take)
     return GenerationResult(takes, request, generate_s=generated, pose_s=time.perf_counter() - t0)
+
+
+def weights_use_of(pipe) -> str:
+    """What the weights of the model that made a take may be used for ("" for a stand-in without a config)."""
+    from mld_core.data import terms
+
+    config = getattr(pipe, "config", None)
+    return terms.use_label(terms.of_model(config)) if hasattr(config, "model_id") else ""
 
 
 def make_work(cache):
