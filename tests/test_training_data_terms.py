@@ -213,3 +213,16 @@ def test_a_take_records_what_the_weights_that_made_it_may_be_used_for(runs):
     assert take.provenance()["mld_weights_use"] == "may be used in commercial products"
     pipe.config.training_data = [terms.CMU, terms.BANDAI]
     assert generate(pipe, request).takes[0].provenance()["mld_weights_use"] == "non-commercial (CC BY-NC 4.0)"
+
+
+def test_a_model_folder_set_in_the_preferences_says_what_its_weights_may_be_used_for(runs, tmp_path):
+    from blender_addon.worker.model_choice import folder_weights_line
+
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    config = json.loads((runs / "den" / "config.json").read_text())
+    (folder / "config.json").write_text(json.dumps(config))
+    assert folder_weights_line(str(folder)) == "Its weights: may be used in commercial products"
+    (folder / "config.json").write_text(json.dumps({**config, "training_data": [terms.BANDAI]}))  # read again
+    assert folder_weights_line(str(folder)) == "Its weights: non-commercial (CC BY-NC 4.0)"
+    assert folder_weights_line(str(tmp_path / "missing")) == ""  # the panel's other line says it is missing

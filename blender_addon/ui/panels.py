@@ -14,13 +14,16 @@ from .operators import resolve_target
 
 def _draw_model(layout, settings, context) -> None:
     """The Model choice (or the Preferences' folder that overrides it), and why Draft is off for a model without one."""
-    from ..worker.model_choice import folder_override_for, has_draft, model_dir_for
+    from ..worker.model_choice import folder_override_for, folder_weights_line, has_draft, model_dir_for
     from .preferences import get_prefs
 
     prefs = get_prefs(context)
     override = folder_override_for(prefs)
     if override is not None:
         layout.label(text=f"Model: {Path(override).name or override} (set in Preferences)", icon="FILE_FOLDER")
+        line = folder_weights_line(override)
+        if line:
+            layout.label(text=line)
     else:
         layout.prop(settings, "model")
     if settings.mode == "DRAFT" or settings.live_preview:

@@ -5,6 +5,7 @@ model chosen in the panel (mld_core.bundled), or under Auto the bundled model th
 from __future__ import annotations
 
 from functools import lru_cache
+from pathlib import Path
 
 from mld_core import bundled
 from mld_core.bundled import DEFAULT_NAME, UnknownModel, bundled_models, model_folder, model_id_in, weights_use
@@ -106,6 +107,24 @@ def other_model_line(prompt: str, verdict: str, model_dir: str | None, overridde
         return ""
     pick = ("clear the Preferences' model folder, then " if overridden else "") + PANEL_PICK
     return other_model_note(Coverage(prompt, 0.0, verdict), model_id_of(model_dir), pick)
+
+
+def folder_weights_line(folder: str) -> str:
+    """The panel's line under a model folder set in the Preferences: what its weights may be used for (the
+    bundled models say it in the Model choice's tooltip); cached per folder and config.json change, as the panel
+    draws it on every redraw."""
+    config = Path(folder).expanduser() / "config.json"
+    try:
+        stat = config.stat()
+        stamp = (stat.st_mtime_ns, stat.st_size)
+    except OSError:
+        stamp = (0, 0)
+    return _weights_line(str(Path(folder).expanduser()), stamp)
+
+
+@lru_cache(maxsize=16)
+def _weights_line(folder: str, stamp: tuple) -> str:
+    return f"Its weights: {weights_use(Path(folder))}" if model_id_in(Path(folder)) is not None else ""
 
 
 def model_id_of(model_dir: str | None) -> str:
