@@ -25,7 +25,8 @@ import numpy as np
 import torch
 
 from . import skeleton as sk
-from .quaternion import cross, normalize, qbetween, qinv, qmul, qpositive, qrot, quat_to_cont6d, turn_about_y
+from .quaternion import (cross, normalize, qbetween, qinv, qmul, qpositive, qrot, quat_to_cont6d, resampled_frames,
+                         turn_about_y)
 
 ROOT_ROT_VEL = slice(0, 1)
 ROOT_LIN_VEL = slice(1, 3)
@@ -94,14 +95,8 @@ def _check_joints(joints) -> np.ndarray:
 
 def resample(joints: np.ndarray, fps_in: float, fps_out: float) -> np.ndarray:
     """Linear resampling along axis 0 from fps_in to fps_out, keeping the first frame and the duration."""
-    if fps_in <= 0 or fps_out <= 0:
-        raise ValueError(f"frame rates must be positive, got {fps_in} -> {fps_out}")
-    n_in = len(joints)
-    n_out = int(np.floor((n_in - 1) * fps_out / fps_in + 1e-9)) + 1
-    t = np.arange(n_out) * (fps_in / fps_out)  # positions in input frames
-    lo = np.clip(np.floor(t).astype(int), 0, n_in - 1)
-    hi = np.clip(lo + 1, 0, n_in - 1)
-    w = (t - lo).reshape(-1, *([1] * (joints.ndim - 1)))
+    lo, hi, w = resampled_frames(len(joints), fps_in, fps_out)
+    w = w.reshape(-1, *([1] * (joints.ndim - 1)))
     return joints[lo] * (1 - w) + joints[hi] * w
 
 

@@ -218,18 +218,23 @@ def slerp(q0: np.ndarray, q1: np.ndarray, t: np.ndarray) -> np.ndarray:
     return normalize(w0 * q0 + w1 * q1)
 
 
+def resampled_frames(n_in: int, fps_in: float, fps_out: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(lo, hi, w), each (n_out,): the input frames either side of each output frame and the weight of ``hi``, for
+    resampling ``n_in`` frames from fps_in to fps_out, keeping frame 0 and covering the same duration."""
+    if fps_in <= 0 or fps_out <= 0:
+        raise ValueError(f"frame rates must be positive, got {fps_in} -> {fps_out}")
+    n_out = int(np.floor((n_in - 1) * fps_out / fps_in + 1e-9)) + 1
+    t = np.arange(n_out) * (fps_in / fps_out)  # positions in input frames
+    lo = np.clip(np.floor(t).astype(int), 0, n_in - 1)
+    return lo, np.clip(lo + 1, 0, n_in - 1), t - lo
+
+
 def resample_quaternions(quats: np.ndarray, root: np.ndarray, fps_in: float, fps_out: float):
     """Resample local quaternions (T, J, 4) by slerp and root positions (T, 3) linearly from fps_in to
     fps_out, keeping frame 0 and covering the same duration. Returns (quats, root) in the input dtypes."""
     quats, root = np.asarray(quats), np.asarray(root)
-    if fps_in <= 0 or fps_out <= 0:
-        raise ValueError(f"frame rates must be positive, got {fps_in} -> {fps_out}")
-    n_in = len(quats)
-    n_out = int(np.floor((n_in - 1) * fps_out / fps_in + 1e-9)) + 1
-    t = np.arange(n_out) * (fps_in / fps_out)  # positions in input frames
-    lo = np.clip(np.floor(t).astype(int), 0, n_in - 1)
-    hi = np.clip(lo + 1, 0, n_in - 1)
-    w = t - lo  # (n_out,)
+    lo, hi, w = resampled_frames(len(quats), fps_in, fps_out)
+    n_out = len(w)
     q = slerp(quats[lo], quats[hi], np.broadcast_to(w[:, None], (n_out, quats.shape[1])))
     r = root[lo] * (1 - w[:, None]) + root[hi] * w[:, None]
     return q.astype(quats.dtype), r.astype(root.dtype)
