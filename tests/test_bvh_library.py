@@ -72,6 +72,11 @@ def test_a_library_records_the_terms_its_owner_gives(library, tmp_path, capsys):
     assert _run(library, tmp_path / "bad", "--caption-template", "a person {name}", "--licence", " ") == 2
     err = capsys.readouterr().err
     assert "--licence" in err and len(err.strip().splitlines()) == 1 and not (tmp_path / "bad").exists()
+    for bad in (bl.LibraryOptions(caption_template="a person {name}", licence=""),  # the library's own API too
+                bl.LibraryOptions(caption_template="a person {name}", commercial="yes")):
+        with pytest.raises(PrepareError):
+            bl.prepare_bvh(library, tmp_path / "bad", bad)
+        assert not (tmp_path / "bad").exists()
 
 
 def test_caption_table_spans_cut_segments(library, tmp_path):

@@ -38,7 +38,8 @@ def test_one_source_that_forbids_makes_the_whole_non_commercial_and_an_unknown_o
 @pytest.mark.parametrize("bad", [[], "CMU", [{"name": "x", "licence": "y"}], [{"name": "", "licence": "y",
                                                                                  "commercial": True}],
                                  [{"name": "x", "licence": "y", "commercial": "yes"}],
-                                 [{"name": "x", "licence": "y", "commercial": 1}]])
+                                 [{"name": "x", "licence": "y", "commercial": 1}],
+                                 [{"name": "x", "licence": " ", "commercial": True}]])
 def test_malformed_records_are_refused_in_one_line(bad, tmp_path):
     with pytest.raises(ValueError):
         terms.checked(bad)

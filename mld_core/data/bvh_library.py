@@ -347,6 +347,10 @@ def prepare_bvh(src, out, options: LibraryOptions | None = None) -> dict:
         raise PrepareError(f"{src} is not a folder")
     if options.up not in (None, "y", "z"):
         raise PrepareError("--up must be y or z")
+    if not isinstance(options.licence, str) or not options.licence.strip():
+        raise PrepareError("--licence: say the library's terms in words (e.g. \"Studio X, all rights reserved\")")
+    if options.commercial is not None and not isinstance(options.commercial, bool):
+        raise PrepareError("commercial must be true, false or unsaid (None)")
     if options.units is not None and options.units not in UNITS:
         try:
             if not 0 < float(options.units) < float("inf"):

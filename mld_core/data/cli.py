@@ -159,8 +159,6 @@ def _run_bvh(args) -> int:
     from .bvh_library import LibraryOptions, prepare_bvh
 
     start = time.perf_counter()
-    if not args.licence.strip():
-        raise UsageError("--licence: say the library's terms in words (e.g. \"Studio X, all rights reserved\")")
     options = LibraryOptions(captions=args.captions, caption_template=args.caption_template, bone_map=args.bone_map,
                              units=args.units, up=args.up, mirror=not args.no_mirror, licence=args.licence,
                              commercial=None if args.commercial_use is None else args.commercial_use == "yes")

@@ -2,11 +2,11 @@
 rebuilds a HumanML3D-format folder from it.
 
 A pack holds, for every clip of the chosen splits, its joints (``new_joints``: quantised to a millimetre, stored as
-second differences in time, channel by channel, and xz-compressed), its captions, the split lists, Mean/Std and
-actions.json, LICENSE and terms.json. Mirrored copies (``M<id>``) are not stored: unpacking mirrors the joints again. Unpacking computes the
-features from the joints with ``joints_to_features``, so an unpacked clip is one frame shorter than the packed one
-and its features differ from the original folder's by the quantisation (under a millimetre) and by the inverse
-kinematics being run on recovered joints. It is a folder to train on, not a copy: evaluate on the original.
+second differences in time, channel by channel, and xz-compressed), its captions, the split lists, Mean/Std,
+actions.json, LICENSE and terms.json. Mirrored copies (``M<id>``) are not stored: unpacking mirrors the joints again.
+Unpacking computes the features from the joints with ``joints_to_features``, so an unpacked clip is one frame shorter
+than the packed one and its features differ from the original folder's by the quantisation (under a millimetre) and
+by the inverse kinematics being run on recovered joints. It is a folder to train on, not a copy: evaluate on the original.
 
 The whole CMU + Bandai Namco train and val splits (23.8 hours with the mirrored copies) pack into about 25 MB.
 """

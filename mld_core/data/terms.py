@@ -41,7 +41,7 @@ def checked(sources) -> list[dict]:
     out = []
     for entry in sources:
         if not (isinstance(entry, dict) and isinstance(entry.get("name"), str) and entry["name"].strip()
-                and isinstance(entry.get("licence"), str) and "commercial" in entry
+                and isinstance(entry.get("licence"), str) and entry["licence"].strip() and "commercial" in entry
                 and (entry["commercial"] is None or isinstance(entry["commercial"], bool))):
             raise ValueError(f"a training data entry needs a name, a licence and commercial true/false/null, "
                              f"got {entry!r}")
@@ -95,11 +95,16 @@ def commercial_use(sources) -> bool | None:
     return True if all(values) else None
 
 
+def _forbidding(sources) -> str:
+    """The licences of the sources that forbid commercial use, joined."""
+    return ", ".join(e["licence"] for e in checked(sources) if e["commercial"] is False)
+
+
 def use_label(sources) -> str:
     """A few words on what the weights may be used for, for the add-on's model choices."""
     use = commercial_use(sources)
     if use is False:
-        return "non-commercial (" + ", ".join(e["licence"] for e in checked(sources) if e["commercial"] is False) + ")"
+        return f"non-commercial ({_forbidding(sources)})"
     return "may be used in commercial products" if use else "use as its training data's terms allow"
 
 
@@ -108,8 +113,7 @@ def licence_summary(sources) -> str:
     use = commercial_use(sources)
     names = "; ".join(f"{e['name']}: {e['licence']}" for e in checked(sources))
     if use is False:
-        forbidding = ", ".join(e["licence"] for e in checked(sources) if e["commercial"] is False)
-        return f"**non-commercial** ({forbidding}), inherited from the training data ({names})"
+        return f"**non-commercial** ({_forbidding(sources)}), inherited from the training data ({names})"
     if use is True:
         return f"**may be used in commercial products**: every source of its training data allows it ({names})"
     return f"**as the licences of its training data allow**: some are not recorded or not stated ({names})"
