@@ -81,6 +81,30 @@ def test_lr_schedule_and_budget():
     assert Budget(10, None).progress(5) == 0.5 and Budget(10, None).done(10)
 
 
+def test_warmup_ramps_the_rate_over_the_first_steps_of_a_run(folder, tmp_path, capsys):
+    """warmup_steps ramps a VAE's and a denoiser's rate up linearly (each log line records the rate it trained at);
+    a bad value is refused in one line before anything is written."""
+    from mld_core.training.common import warmup_factor
+    assert [warmup_factor(s, 4) for s in range(6)] == [0.25, 0.5, 0.75, 1.0, 1.0, 1.0]
+    assert warmup_factor(0, 0) == 1.0
+    vae_run = tmp_path / "vae"
+    vae_cfg = {**TINY_VAE, "val_every": 2, "decay_start": 1.0, "warmup_steps": 4}
+    assert main(["train", "vae", "--data", str(folder), "--out", str(vae_run), "--steps", "6", "--threads", "1",
+                 "--config", json.dumps(vae_cfg), "--lr", "2e-3"]) == 0
+    rates = [json.loads(line)["lr"] for line in (vae_run / "log.jsonl").read_text().splitlines()]
+    assert rates == pytest.approx([1e-3, 2e-3, 2e-3])  # the rates of steps 2, 4 and 6 (ramp factors 2/4, 4/4, 1)
+    den_run = tmp_path / "den"
+    den_args = ["train", "denoiser", "--data", str(folder), "--vae", str(vae_run), "--threads", "1", "--lr", "1e-3"]
+    den_cfg = {**TINY_DEN, "save_every": 1, "decay_start": 1.0, "warmup_steps": 3}
+    assert main(den_args + ["--out", str(den_run), "--steps", "4", "--config", json.dumps(den_cfg)]) == 0
+    rates = [json.loads(line)["lr"] for line in (den_run / "log.jsonl").read_text().splitlines()]
+    assert rates == pytest.approx([1e-3 / 3, 2e-3 / 3, 1e-3, 1e-3])
+    capsys.readouterr()
+    bad = tmp_path / "bad"
+    assert main(den_args + ["--out", str(bad), "--steps", "1", "--config", json.dumps({**den_cfg, "warmup_steps": -1})]) == 2
+    assert "warmup_steps must be between 0 and" in capsys.readouterr().err and not bad.exists()
+
+
 def test_train_vae_then_denoiser_then_generate(folder, tmp_path):
     cfg_vae = tmp_path / "vae.json"
     cfg_vae.write_text(json.dumps(TINY_VAE))

@@ -191,6 +191,12 @@ def lr_factor(progress: float, decay_start: float, floor: float = 0.1) -> float:
     return floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * min(1.0, t)))
 
 
+def warmup_factor(step: int, warmup_steps: int) -> float:
+    """A linear ramp over a run's first ``warmup_steps`` steps (1 after them, and always when 0): a run that starts a
+    fresh optimiser on trained weights (--init) takes no full-rate steps on Adam's first, noisy moments."""
+    return 1.0 if step >= warmup_steps else (step + 1) / warmup_steps
+
+
 def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
     """Every parameter group's rate: ``lr`` times the group's ``lr_scale`` (1 when it has none)."""
     for group in optimizer.param_groups:

@@ -38,7 +38,8 @@ from mld_core.training import distributed
 from mld_core.training.common import (Budget, boosted_weights, check_boosted_labels, check_resumed_modules,
                                      checked_budget, checked_folder_setting, checked_label_boost,
                                      checked_module_names, load_train_state, lr_factor, run_training_data,
-                                     save_train_state, set_lr, setup_torch, trainable_parameters)
+                                     save_train_state, set_lr, setup_torch, trainable_parameters,
+                                     warmup_factor)
 from mld_core.training.vae import GROWTH_NOISE, prepare_run_dir
 from mld_core.training.verb_fold import check_foldable, load_verb_fold
 
@@ -60,6 +61,7 @@ class DenoiserTrainConfig:
     lr: float = 1e-4
     ema_decay: float = 0.999
     decay_start: float = 0.6  # cosine learning-rate decay over the last 40% of the budget (--steps/--minutes)
+    warmup_steps: int = 0  # the rate ramped up linearly over the run's first steps (a fresh optimiser on --init weights)
     crops_per_clip: int = 8
     balance_power: float = 0.7
     label_boost: dict | None = None  # {label: factor}: that label's clips drawn factor times as often (after balance)
@@ -89,6 +91,7 @@ class DenoiserTrainConfig:
 
     def __post_init__(self):
         self.steps, self.minutes = checked_budget(self.steps, self.minutes)
+        self.warmup_steps = inputs.int_in_range(self.warmup_steps, "warmup_steps", 0, 1_000_000)
         self.reworded_captions = inputs.int_in_range(self.reworded_captions, "reworded_captions", 0, 20)
         self.reworded_turns = inputs.true_or_false(self.reworded_turns, "reworded_turns")
         self.reworded_sides = inputs.true_or_false(self.reworded_sides, "reworded_sides")
@@ -439,7 +442,8 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
     B = cfg.batch_size
     n, d = dcfg.latent_tokens, dcfg.latent_dim
     while not budget.done(step):
-        set_lr(opt, cfg.lr * lr_factor(budget.progress(step), cfg.decay_start))
+        rate = lr_factor(budget.progress(step), cfg.decay_start) * warmup_factor(step, cfg.warmup_steps)
+        set_lr(opt, cfg.lr * rate)
         rng, gen = distributed.step_rng(cfg.seed, step)
         idx = rng.choice(len(z0_all), size=B, p=weights)
         t = torch.randint(0, n_train, (B,), generator=gen)
@@ -472,7 +476,7 @@ def train_denoiser(cfg: DenoiserTrainConfig, resume: bool = False) -> Path:
         bar.update(1)
         bar.set_postfix(loss=f"{running:.4f}")
         if (step % cfg.save_every == 0 or budget.done(step)) and rt.is_main:
-            log.write(json.dumps({"step": step, "loss": running, "minutes": round(budget.minutes, 2),
+            log.write(json.dumps({"step": step, "loss": running, "lr": opt.param_groups[0]["lr"], "minutes": round(budget.minutes, 2),
                                   "seconds": round(budget.minutes * 60, 3)}) + "\n")
             log.flush()
             save()

@@ -28,7 +28,8 @@ from mld_core.motion.features import FOOT_CONTACT, ROOT_ROT_VEL, ROOT_Y, feature
 from mld_core.training import distributed
 from mld_core.training.common import (Budget, boosted_weights, check_resumed_modules, checked_budget,
                                      checked_label_boost, checked_module_names, load_train_state, lr_factor,
-                                     run_training_data, save_train_state, set_lr, setup_torch, trainable_parameters)
+                                     run_training_data, save_train_state, set_lr, setup_torch, trainable_parameters,
+                                     warmup_factor)
 
 ROOT_CHANNELS = slice(ROOT_ROT_VEL.start, ROOT_Y.stop)  # yaw velocity, xz velocity (facing frame), root height
 HORIZONTAL = [0, 2]  # x and z of a joint position (y is up)
@@ -52,6 +53,7 @@ class VAETrainConfig:
     # balance (e.g. {"kick": 6, "throw": 6}: more of the rare fast-limb clips in every batch)
     label_boost: dict | None = None
     decay_start: float = 0.5  # cosine learning-rate decay over the second half of the budget (--steps/--minutes)
+    warmup_steps: int = 0  # the rate ramped up linearly over the run's first steps (a fresh optimiser on --init weights)
     val_every: int = 250
     val_clips: int = 200
     bf16: bool = False  # bfloat16 autocast for forward/backward (fp32 weights and optimiser); ~2x on AVX512-BF16 CPUs
@@ -86,6 +88,7 @@ class VAETrainConfig:
 
     def __post_init__(self):
         self.steps, self.minutes = checked_budget(self.steps, self.minutes)
+        self.warmup_steps = inputs.int_in_range(self.warmup_steps, "warmup_steps", 0, 1_000_000)
         if isinstance(self.vae, dict):
             self.vae = VAEConfig(**self.vae)
         if self.select_by not in ("mpjpe", "mpjpe_sum"):
@@ -357,7 +360,8 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
         mine = rt.rows(len(idx))  # this process's rows
         x = sampler.crops(idx[mine], starts[mine], L, rt.device)  # (b, L, F)
         lengths = torch.full((len(mine),), L, device=rt.device)
-        set_lr(opt, cfg.lr * lr_factor(budget.progress(step), cfg.decay_start))
+        rate = lr_factor(budget.progress(step), cfg.decay_start) * warmup_factor(step, cfg.warmup_steps)
+        set_lr(opt, cfg.lr * rate)
         with rt.autocast():
             loss, parts, recon = model(x, lengths, weights, rt.to_device(noise[mine]))
         if geometric:
@@ -370,8 +374,8 @@ def train_vae(cfg: VAETrainConfig, resume: bool = False) -> Path:
         bar.set_postfix(loss=f"{loss.item():.4f}", kl=f"{parts['kl']:.1f}", fps=f"{frames_seen / (time.monotonic() - t0):.0f}")
         last = budget.done(step)
         if (step % cfg.val_every == 0 or last) and rt.is_main:
-            record = {"step": step, "loss": loss.item(), **parts, "minutes": round(budget.minutes, 2),
-                      "seconds": round(budget.minutes * 60, 3)}
+            record = {"step": step, "loss": loss.item(), **parts, "lr": opt.param_groups[0]["lr"],
+                      "minutes": round(budget.minutes, 2), "seconds": round(budget.minutes * 60, 3)}
             if val:
                 record["val_mpjpe_mm"], record["val_global_mpjpe_mm"] = validate_mpjpe(vae, val, mean, std,
                                                                                        cfg.vae.max_frames)
