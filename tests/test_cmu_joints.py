@@ -373,11 +373,15 @@ def test_the_vocabulary_benchmark_measures_with_the_verb_redraws_it_is_given(cli
     report = json.loads((tmp_path / "v.json").read_text())
     assert report["verb_redraws"] == 2 and report["redrawn"] == 1.0 and report["redraw_s"] > 0
     assert {t["draw"] for t in report["takes"]} == {3} and all(r["pass"] == 1.0 for r in report["rows"] if r["takes"])
+    assert report["capped_cells"] == 0.0  # no real rate for this tiny folder's jumps: no cell counts
+    rows = [{"ratio": 1.5}, {"ratio": 0.25}, {"ratio": float("nan")}, {"ratio": 0.5}]  # capped, kept, uncounted, kept
+    assert vocabulary.capped_cells(rows) == pytest.approx(1.75)
     assert "verb redraws 2" in capsys.readouterr().out
     monkeypatch.setattr(physical, "shows", lambda joints, verb, fps=20.0, result=None: False)
     assert vocabulary.main(argv + ["--verb-redraws", "0", "--json", str(tmp_path / "v.json")]) == 0
     report = json.loads((tmp_path / "v.json").read_text())
     assert report["verb_redraws"] == 0 and {t["draw"] for t in report["takes"]} == {0} and report["redraw_s"] == 0
+    assert "the 3 cells, each capped at 1: 0.00" in capsys.readouterr().out
     assert vocabulary.main(argv + ["--verb-redraws", "9"]) == 2
     assert capsys.readouterr().err.strip() == "error: --verb-redraws must be between 0 and 8, got 9"
 
