@@ -19,6 +19,7 @@ from mld_core.motion.features import features_to_joints
 V4 = Path(__file__).resolve().parents[1] / "research" / "v4"
 FIXTURES = sorted((Path(__file__).parent / "fixtures" / "bandai").glob("*.bvh"))
 PINNED_VAE_MPJPE_MM = 33.04  # the fixture clips through research/v4/vae, root-relative (bundled VAE: 28.45)
+PINNED_CMU_VAE_MPJPE_MM = 104.5  # the fixture clips through research/cmu_only/vae (it never saw Bandai's clips)
 PINNED_EVALUATOR_SIMILARITY = 0.8692  # the walk-and-turn fixture's motion embedding against its wording below
 
 
@@ -150,3 +151,42 @@ def test_the_kept_action_model_is_fp16_generates_by_label_and_refuses_an_unknown
     assert not np.allclose(out.joints[0], out.joints[1])  # two labels, two motions from one seed
     with pytest.raises(ValueError, match="swim"):
         pipe(["swim"], actions=["swim"], seconds=2.0, seed=0)
+
+
+def test_the_long_text_denoiser_is_fp16_on_the_kept_vae_and_generates():
+    """research/v4/den_long: the text denoiser trained long on research/v4/vae with a verb denoiser on its latents,
+    kept so its next sitting continues it (``train denoiser --init research/v4/den_long``): fp16, the kept VAE's
+    weights unchanged beside it, the Bandai, CMU and KIT terms recorded, no machine path; it generates."""
+    from mld_core.data import terms
+    from mld_core.pipeline import MLDPipeline
+
+    folder = V4 / "den_long"
+    for name in ("denoiser.safetensors", "vae.safetensors"):
+        assert {v.dtype for v in load_file(str(folder / name)).values()} == {torch.float16}
+    kept_vae, its_vae = load_file(str(V4 / "vae" / "vae.safetensors")), load_file(str(folder / "vae.safetensors"))
+    assert kept_vae.keys() == its_vae.keys() and all(torch.equal(kept_vae[k], its_vae[k]) for k in kept_vae)
+    card, text = (folder / "MODEL_CARD.md").read_text(), (folder / "config.json").read_text()
+    assert "CC BY-NC 4.0" in card and "mocap.cs.cmu.edu" in card
+    assert not re.search(r'"/[A-Za-z]', text + card)
+    config = load_config(folder)
+    assert config.denoiser.cond == "text" and terms.commercial_use(terms.of_model(config)) is False
+    assert {e["name"] for e in terms.of_model(config)} == {terms.BANDAI["name"], terms.CMU["name"], terms.KIT["name"]}
+    pipe = MLDPipeline.from_pretrained(folder)
+    out = pipe(["a person jumps"], seconds=2.0, seed=0, num_variants=2, num_inference_steps=5)
+    assert out.joints.shape[0] == 2 and np.isfinite(out.joints).all()
+    assert pipe.verb_guide.scale == 8.0 and "jump" in pipe.verb_guide.verbs  # its own verb denoiser, on its latents
+
+
+def test_the_cmu_only_vae_is_fp16_owes_nothing_to_bandai_and_gives_its_pinned_reconstruction():
+    """research/cmu_only/vae: the CMU-only model's VAE, trained from nothing on CMU's own descriptions' folder:
+    its weights may go into commercial products, and it reconstructs the fixture clips (Bandai's, which it never
+    saw) at its pinned error."""
+    from mld_core.data import terms
+
+    folder = V4.parent / "cmu_only" / "vae"
+    assert {v.dtype for v in load_file(str(folder / "vae.safetensors")).values()} == {torch.float16}
+    config = load_config(folder)
+    assert config.denoiser is None and config.vae.latent_tokens == 2
+    assert terms.of_model(config) == [terms.CMU] and terms.commercial_use(terms.of_model(config)) is True
+    assert "may be used in commercial products" in (folder / "MODEL_CARD.md").read_text()
+    assert fixture_recon_mpjpe_mm(folder) == pytest.approx(PINNED_CMU_VAE_MPJPE_MM, rel=1e-3)
