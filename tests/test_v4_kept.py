@@ -167,6 +167,7 @@ def test_the_long_text_denoiser_is_fp16_on_the_kept_vae_and_generates():
     assert kept_vae.keys() == its_vae.keys() and all(torch.equal(kept_vae[k], its_vae[k]) for k in kept_vae)
     card, text = (folder / "MODEL_CARD.md").read_text(), (folder / "config.json").read_text()
     assert "CC BY-NC 4.0" in card and "mocap.cs.cmu.edu" in card
+    assert "## Limits" in card and "24 content classes" not in card  # its own limits, not the Bandai model's
     assert not re.search(r'"/[A-Za-z]', text + card)
     config = load_config(folder)
     assert config.denoiser.cond == "text" and terms.commercial_use(terms.of_model(config)) is False
